@@ -1,0 +1,242 @@
+"""Rig and plan configs (TOML → pydantic, extra="forbid").
+
+Every mistake a user can type becomes a `ConfigError` with one line naming the file, the key and
+the allowed range, so the CLI can print it without a traceback.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+__all__ = [
+    "ConfigError",
+    "AxisConfig",
+    "BusConfig",
+    "LightConfig",
+    "CameraConfig",
+    "GeometryConfig",
+    "RigConfig",
+    "PlanConfig",
+    "load_rig",
+    "load_plan",
+    "format_validation_error",
+]
+
+AxisRole = Literal["light_theta", "light_phi", "camera_theta", "camera_phi", "sample_azimuth"]
+
+
+class ConfigError(ValueError):
+    """A config file is wrong. The message is one line: file, key, what is allowed."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class AxisConfig(_Strict):
+    role: AxisRole
+    id: int = Field(ge=0, le=252, description="Dynamixel ID")
+    model: Literal["XM430-W350", "XL430-W250"] = "XM430-W350"
+    gear_ratio: float = Field(1.0, gt=0, description="servo turns per axis turn")
+    zero_offset_deg: float = Field(0.0, ge=-360, le=360, description="axis angle at servo tick 0")
+    direction: Literal[1, -1] = 1
+    min_deg: float = Field(ge=-360, le=360)
+    max_deg: float = Field(ge=-360, le=360)
+    profile_velocity: int = Field(60, ge=1, le=32767, description="0.229 rpm per unit")
+    profile_acceleration: int = Field(20, ge=0, le=32767, description="214.577 rev/min² per unit")
+    park_deg: float | None = Field(None, ge=-360, le=360, description="safe angle on stop")
+
+    @model_validator(mode="after")
+    def _range(self) -> AxisConfig:
+        if self.min_deg >= self.max_deg:
+            raise ValueError(f"min_deg ({self.min_deg}) must be below max_deg ({self.max_deg})")
+        return self
+
+
+class BusConfig(_Strict):
+    url: str = Field(description="serial device (/dev/ttyUSB0), or dxlsim://NAME for the emulator")
+    baudrate: int = Field(57600, description="X-series ship at 57600")
+    retries: int = Field(3, ge=0, le=20)
+    on_alert: Literal["reboot", "stop"] = "stop"
+
+    @field_validator("baudrate")
+    @classmethod
+    def _baud(cls, v: int) -> int:
+        allowed = (9600, 57600, 115200, 1000000, 2000000, 3000000, 4000000, 4500000)
+        if v not in allowed:
+            raise ValueError(f"baudrate must be one of {allowed}")
+        return v
+
+
+class LightConfig(_Strict):
+    url: str = Field(description="serial device, or lightsim://NAME for the emulator")
+    level: float = Field(1.0, gt=0, le=1, description="relative intensity used for the run")
+    intensity_W_sr: tuple[float, float, float] | None = Field(
+        None, description="radiant intensity per channel (R, G, B) at level 1, W/sr, from the "
+        "source's calibration certificate; without it results are relative"
+    )
+    warmup_s: float = Field(0.0, ge=0, le=3600)
+
+
+class CameraConfig(_Strict):
+    backend: str = Field("sim", description='"sim", "folder" or "gphoto2"')
+    folder: str | None = None
+    readout_s: float = Field(0.05, ge=0, description="lab time per frame beyond the exposure")
+
+
+class GeometryConfig(_Strict):
+    preset: Literal["two-arm"] = "two-arm"
+    light_distance_m: float = Field(0.5, gt=0, le=10)
+    camera_distance_m: float = Field(0.5, gt=0, le=10)
+    min_separation_deg: float = Field(5.0, ge=0, le=90, description="light–camera occlusion")
+    max_theta_deg: float = Field(85.0, gt=0, le=90)
+
+
+class RigConfig(_Strict):
+    name: str = "rig"
+    clock: str = Field("system", description='"system" for a real rig, "sim" for the emulator')
+    scene: str | None = Field(None, description="scene TOML (simulated rigs only), relative path")
+    settle_s: float = Field(0.2, ge=0, le=60, description="wait after arrival before capture")
+    move_timeout_s: float = Field(60.0, gt=0, le=3600)
+    bus: BusConfig
+    axes: tuple[AxisConfig, ...]
+    light: LightConfig
+    camera: CameraConfig = Field(default_factory=CameraConfig)
+    geometry: GeometryConfig = Field(default_factory=GeometryConfig)
+
+    @model_validator(mode="after")
+    def _unique(self) -> RigConfig:
+        ids = [a.id for a in self.axes]
+        dup = sorted({i for i in ids if ids.count(i) > 1})
+        if dup:
+            raise ValueError(f"duplicate servo id {dup[0]} in [[axes]] (each id must be unique)")
+        roles = [a.role for a in self.axes]
+        duprole = sorted({r for r in roles if roles.count(r) > 1})
+        if duprole:
+            raise ValueError(f"duplicate axis role {duprole[0]!r} in [[axes]]")
+        need = {"light_theta", "light_phi", "camera_theta", "camera_phi"}
+        if self.geometry.preset == "two-arm" and not need <= set(roles):
+            raise ValueError(f"the two-arm preset needs axes with roles {sorted(need)}")
+        return self
+
+    def axis(self, role: str) -> AxisConfig:
+        for a in self.axes:
+            if a.role == role:
+                return a
+        raise KeyError(role)
+
+
+class PlanConfig(_Strict):
+    """A sampling plan. `isotropic`: every (θ_i, θ_o, Δφ) combination with φ_i = 0 and
+    φ_o = Δφ (Δφ = 180° is the plane of incidence, specular side)."""
+
+    name: str = "plan"
+    type: Literal["isotropic", "explicit"] = "isotropic"
+    theta_i_deg: tuple[float, ...] = ()
+    theta_o_deg: tuple[float, ...] = ()
+    delta_phi_deg: tuple[float, ...] = (180.0,)
+    poses_deg: tuple[tuple[float, float, float, float], ...] = Field(
+        (), description="explicit (θ_i, φ_i, θ_o, φ_o) list"
+    )
+    exposures_s: tuple[float, ...] = Field((0.002,), min_length=1)
+    order: Literal["raster", "nearest"] = "nearest"
+    skip_unreachable: bool = Field(
+        True, description="drop grid poses the rig cannot reach (explicit poses always error)"
+    )
+
+    @field_validator("theta_i_deg", "theta_o_deg")
+    @classmethod
+    def _theta(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        for t in v:
+            if not 0.0 <= t < 90.0:
+                raise ValueError(f"angle {t} out of range [0, 90) deg")
+        return v
+
+    @field_validator("delta_phi_deg")
+    @classmethod
+    def _phi(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        for p in v:
+            if not 0.0 <= p <= 360.0:
+                raise ValueError(f"angle {p} out of range [0, 360] deg")
+        return v
+
+    @field_validator("exposures_s")
+    @classmethod
+    def _exp(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        for t in v:
+            if not (0 < t <= 60 and math.isfinite(t)):
+                raise ValueError(f"exposure {t} s out of range (0, 60] s")
+        return v
+
+    @model_validator(mode="after")
+    def _content(self) -> PlanConfig:
+        if self.type == "isotropic" and not (self.theta_i_deg and self.theta_o_deg):
+            raise ValueError("an isotropic plan needs theta_i_deg and theta_o_deg lists")
+        if self.type == "explicit" and not self.poses_deg:
+            raise ValueError("an explicit plan needs poses_deg")
+        for pose in self.poses_deg:
+            ti, pi, to, po = pose
+            if not (0 <= ti < 90 and 0 <= to < 90):
+                raise ValueError(f"pose {list(pose)}: theta out of range [0, 90) deg")
+            if not (-360 <= pi <= 360 and -360 <= po <= 360):
+                raise ValueError(f"pose {list(pose)}: phi out of range [-360, 360] deg")
+        return self
+
+
+def format_validation_error(path: Path | str, err: ValidationError) -> str:
+    """First pydantic error as one line: `file: key.path: message (got value)`."""
+    e = err.errors()[0]
+    loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+    msg = e["msg"]
+    if e["type"] == "extra_forbidden":
+        msg = "unknown key (check the spelling; see the commented example configs in configs/)"
+    elif e["type"] == "missing":
+        msg = "required key is missing"
+    got = e.get("input")
+    tail = f" (got {got!r})" if e["type"] not in ("missing", "extra_forbidden") and _short(got) else ""
+    return f"{path}: {loc}: {msg}{tail}"
+
+
+def _short(v: object) -> bool:
+    return not isinstance(v, dict | list | tuple) or len(repr(v)) < 60
+
+
+def _load_toml(path: Path | str) -> dict:
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"{path}: no such file")
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read ({exc})") from None
+
+
+def load_rig(path: Path | str) -> RigConfig:
+    data = _load_toml(path)
+    try:
+        rig = RigConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(path, err)) from None
+    if rig.scene is not None:
+        # Scene paths are relative to the rig file, so configs can be moved together.
+        scene = Path(rig.scene)
+        if not scene.is_absolute():
+            scene = (Path(path).parent / scene).resolve()
+        rig = rig.model_copy(update={"scene": str(scene)})
+    return rig
+
+
+def load_plan(path: Path | str) -> PlanConfig:
+    data = _load_toml(path)
+    try:
+        return PlanConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(path, err)) from None

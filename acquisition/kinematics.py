@@ -1,0 +1,152 @@
+"""Rig kinematics: a pose (θ_i, φ_i, θ_o, φ_o) ↔ axis targets, and the constraints that make a
+pose impossible (arm limits, light–camera occlusion).
+
+Preset "two-arm": two spherical arms centred on the sample. The light arm carries the source at
+`light_distance_m`, the camera arm the camera at `camera_distance_m`; each arm has an elevation
+axis (θ from the sample normal) and an azimuth axis (φ from +x toward +y).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from acquisition.config import RigConfig
+from fitting.directions import spherical_to_vector, vector_to_spherical
+
+__all__ = ["Pose", "Unreachable", "Kinematics"]
+
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Directions in the sample frame, radians."""
+
+    theta_i: float
+    phi_i: float
+    theta_o: float
+    phi_o: float
+
+    @classmethod
+    def from_deg(cls, ti: float, pi: float, to: float, po: float) -> Pose:
+        return cls(*(math.radians(a) for a in (ti, pi, to, po)))
+
+    def deg(self) -> tuple[float, float, float, float]:
+        return tuple(math.degrees(a) for a in (self.theta_i, self.phi_i, self.theta_o, self.phi_o))
+
+    @property
+    def wi(self) -> np.ndarray:
+        return spherical_to_vector(self.theta_i, self.phi_i)
+
+    @property
+    def wo(self) -> np.ndarray:
+        return spherical_to_vector(self.theta_o, self.phi_o)
+
+
+class Unreachable(ValueError):
+    """The rig cannot take this pose; the message says why in one line."""
+
+
+class Kinematics:
+    def __init__(self, rig: RigConfig) -> None:
+        self.rig = rig
+        self.geometry = rig.geometry
+        self.limits = {a.role: (math.radians(a.min_deg), math.radians(a.max_deg)) for a in rig.axes}
+
+    # -- pose → axes -------------------------------------------------------------------------
+    def _fit_angle(self, role: str, angle: float, periodic: bool) -> float:
+        lo, hi = self.limits[role]
+        if periodic:
+            # Azimuth is periodic: pick the representative 2πk + angle that lies in the limits.
+            k = math.ceil((lo - angle) / TWO_PI - 1e-12)
+            candidate = angle + k * TWO_PI
+            if candidate <= hi + 1e-12:
+                return min(max(candidate, lo), hi)
+        elif lo - 1e-12 <= angle <= hi + 1e-12:
+            return min(max(angle, lo), hi)
+        raise Unreachable(
+            f"axis {role} cannot reach {math.degrees(angle):.2f} deg "
+            f"(limits {math.degrees(lo):.1f}..{math.degrees(hi):.1f} deg)"
+        )
+
+    def check(self, pose: Pose) -> None:
+        """Raise Unreachable with the reason, or return None."""
+        self.targets(pose)
+
+    def targets(self, pose: Pose) -> dict[str, float]:
+        """Axis targets in radians for a pose, or Unreachable."""
+        g = self.geometry
+        max_theta = math.radians(g.max_theta_deg)
+        for label, theta in (("theta_i", pose.theta_i), ("theta_o", pose.theta_o)):
+            if not 0.0 <= theta <= max_theta + 1e-12:
+                raise Unreachable(
+                    f"{label} = {math.degrees(theta):.2f} deg is outside 0..{g.max_theta_deg} deg"
+                )
+        sep = math.degrees(_angle_between(pose.wi, pose.wo))
+        if sep < g.min_separation_deg:
+            raise Unreachable(
+                f"light and camera {sep:.2f} deg apart, closer than min_separation_deg = "
+                f"{g.min_separation_deg} (the light would occlude the camera)"
+            )
+        return {
+            "light_theta": self._fit_angle("light_theta", pose.theta_i, periodic=False),
+            "light_phi": self._fit_angle("light_phi", pose.phi_i, periodic=True),
+            "camera_theta": self._fit_angle("camera_theta", pose.theta_o, periodic=False),
+            "camera_phi": self._fit_angle("camera_phi", pose.phi_o, periodic=True),
+        }
+
+    # -- axes → pose and positions -------------------------------------------------------------
+    def pose(self, axes_rad: dict[str, float]) -> Pose:
+        return Pose(
+            axes_rad["light_theta"],
+            axes_rad["light_phi"] % TWO_PI,
+            axes_rad["camera_theta"],
+            axes_rad["camera_phi"] % TWO_PI,
+        )
+
+    def light_position_m(self, axes_rad: dict[str, float]) -> np.ndarray:
+        p = self.pose(axes_rad)
+        return self.geometry.light_distance_m * spherical_to_vector(p.theta_i, p.phi_i)
+
+    def camera_position_m(self, axes_rad: dict[str, float]) -> np.ndarray:
+        p = self.pose(axes_rad)
+        return self.geometry.camera_distance_m * spherical_to_vector(p.theta_o, p.phi_o)
+
+
+def _angle_between(a: np.ndarray, b: np.ndarray) -> float:
+    # atan2 form: accurate for both tiny and near-π angles (arccos of a dot product is not).
+    return float(np.arctan2(np.linalg.norm(np.cross(a, b)), np.dot(a, b)))
+
+
+def pose_from_vectors(wi: np.ndarray, wo: np.ndarray) -> Pose:
+    ti, pi = vector_to_spherical(wi)
+    to, po = vector_to_spherical(wo)
+    return Pose(float(ti), float(pi), float(to), float(po))
+
+
+def look_at_rotation(camera_pos_m: np.ndarray, target_m: np.ndarray | None = None) -> np.ndarray:
+    """Camera-to-world rotation in the OpenCV camera convention (x right, y down, z forward).
+
+    The camera on an arm looks at the sample centre; image "up" is the projection of the sample
+    normal +z (so the horizon is horizontal in the image). When the camera looks (nearly) straight
+    down the normal, +z is (nearly) parallel to the view and the rule is ill-conditioned; then
+    image up is +y.
+    The simulated camera renders with this same rotation, so calibration's per-pixel rays and the
+    render agree by construction of the rig, not by coincidence.
+    Returns R (3×3) with columns = camera x, y, z axes expressed in the sample frame.
+    """
+    c = np.asarray(camera_pos_m, dtype=np.float64)
+    t = np.zeros(3) if target_m is None else np.asarray(target_m, dtype=np.float64)
+    forward = t - c
+    forward /= np.linalg.norm(forward)
+    up_hint = np.array([0.0, 0.0, 1.0])
+    # Within 2.6° of the normal (|cos| > 0.999) the cross product is ill-conditioned.
+    if abs(float(forward @ up_hint)) > 0.999:
+        up_hint = np.array([0.0, 1.0, 0.0])
+    right = np.cross(forward, up_hint)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return np.stack([right, down, forward], axis=1)

@@ -1,0 +1,369 @@
+"""Crash-safe run store (DESIGN §4): `run.toml`, `manifest.sqlite` (WAL), `frames/`.
+
+Invariants:
+- A frame is written to a temp file, fsync'd, then linked into place with `os.link`, which
+  fails rather than overwrite; the directory is fsync'd. Only then is its row marked done.
+- A capture row is inserted as `pending` (with everything known about it) *before* the frame is
+  written. A crash between "frame in place" and "row done" leaves a pending row whose frame
+  exists: resume verifies and adopts it, so no captured frame is ever lost.
+- A run directory is never overwritten: opening a complete run for writing is refused.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import sqlite3
+import tomllib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "RunStoreError",
+    "RunStore",
+    "CaptureRecord",
+    "atomic_write_bytes",
+    "sha256_file",
+    "now_iso",
+]
+
+SCHEMA_VERSION = 1
+
+
+class RunStoreError(RuntimeError):
+    """A run directory cannot be used as asked. One-line message."""
+
+
+def now_iso() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write_bytes(path: Path, data: bytes, *, overwrite: bool = False) -> None:
+    """Temp file in the same directory, fsync, then link (no overwrite) or replace."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            os.link(tmp, path)  # FileExistsError instead of silently replacing
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    _fsync_dir(path.parent)
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS captures (
+    id INTEGER PRIMARY KEY,
+    pose_index INTEGER NOT NULL,
+    bracket_index INTEGER NOT NULL,
+    exposure_s REAL NOT NULL,
+    theta_i REAL NOT NULL, phi_i REAL NOT NULL, theta_o REAL NOT NULL, phi_o REAL NOT NULL,
+    axes_commanded TEXT NOT NULL,
+    axes_measured TEXT NOT NULL,
+    light_dir TEXT NOT NULL,
+    camera_dir TEXT NOT NULL,
+    frame_path TEXT NOT NULL UNIQUE,
+    sha256 TEXT,
+    status TEXT NOT NULL CHECK (status IN ('pending', 'done')),
+    started_at TEXT NOT NULL,
+    finished_at TEXT,
+    lab_time_s REAL,
+    devices TEXT,
+    frame_meta TEXT,
+    note TEXT,
+    UNIQUE (pose_index, bracket_index)
+);
+CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY,
+    at TEXT NOT NULL,
+    kind TEXT NOT NULL,
+    message TEXT NOT NULL
+);
+"""
+
+
+@dataclass
+class CaptureRecord:
+    id: int
+    pose_index: int
+    bracket_index: int
+    exposure_s: float
+    theta_i: float
+    phi_i: float
+    theta_o: float
+    phi_o: float
+    axes_commanded: dict[str, float]
+    axes_measured: dict[str, float]
+    frame_path: str
+    sha256: str | None
+    status: str
+    devices: dict[str, Any]
+    frame_meta: dict[str, Any]
+    lab_time_s: float | None
+
+
+class RunStore:
+    """One run directory. Use `create` for a new run, `open` for an existing one."""
+
+    def __init__(self, root: Path, conn: sqlite3.Connection) -> None:
+        self.root = root
+        self.frames = root / "frames"
+        self._db = conn
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    @classmethod
+    def create(cls, root: Path | str, run_toml: str) -> RunStore:
+        root = Path(root)
+        if root.exists() and any(root.iterdir()):
+            raise RunStoreError(f"{root}: exists and is not empty; choose a new directory")
+        root.mkdir(parents=True, exist_ok=True)
+        (root / "frames").mkdir()
+        atomic_write_bytes(root / "run.toml", run_toml.encode())
+        store = cls._connect(root)
+        with store._db:
+            store._db.executemany(
+                "INSERT INTO meta VALUES (?, ?)",
+                [
+                    ("schema_version", str(SCHEMA_VERSION)),
+                    ("status", "incomplete"),
+                    ("created_at", now_iso()),
+                ],
+            )
+        return store
+
+    @classmethod
+    def open(cls, root: Path | str, *, writable: bool = False) -> RunStore:
+        root = Path(root)
+        if not (root / "manifest.sqlite").exists() or not (root / "run.toml").exists():
+            raise RunStoreError(f"{root}: not a run directory (no run.toml + manifest.sqlite)")
+        store = cls._connect(root)
+        version = store.meta("schema_version")
+        if version is None or not version.isdigit():
+            raise RunStoreError(f"{root}/manifest.sqlite: no schema version; not a gonio run")
+        if int(version) > SCHEMA_VERSION:
+            raise RunStoreError(
+                f"{root}: run schema version {version} is newer than this gonio supports "
+                f"({SCHEMA_VERSION}); upgrade gonio"
+            )
+        if writable and store.complete:
+            raise RunStoreError(f"{root}: run is complete; refusing to modify it")
+        return store
+
+    @classmethod
+    def _connect(cls, root: Path) -> RunStore:
+        try:
+            conn = sqlite3.connect(root / "manifest.sqlite", timeout=30, isolation_level=None)
+            conn.execute("PRAGMA journal_mode=WAL")
+            # FULL: a committed 'done' row survives power loss, matching the fsync'd frame.
+            conn.execute("PRAGMA synchronous=FULL")
+            conn.executescript(_SCHEMA)
+        except sqlite3.DatabaseError as exc:
+            raise RunStoreError(f"{root}/manifest.sqlite: unreadable ({exc})") from None
+        conn.isolation_level = "DEFERRED"
+        return cls(root, conn)
+
+    def close(self) -> None:
+        self._db.close()
+
+    # -- meta --------------------------------------------------------------------------------
+    def meta(self, key: str) -> str | None:
+        row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else row[0]
+
+    def set_meta(self, key: str, value: str) -> None:
+        with self._db:
+            self._db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, value))
+
+    @property
+    def complete(self) -> bool:
+        return self.meta("status") == "complete"
+
+    def mark_complete(self) -> None:
+        self.set_meta("status", "complete")
+        self.set_meta("completed_at", now_iso())
+
+    def run_config(self) -> dict[str, Any]:
+        with open(self.root / "run.toml", "rb") as fh:
+            return tomllib.load(fh)
+
+    def event(self, kind: str, message: str) -> None:
+        with self._db:
+            self._db.execute(
+                "INSERT INTO events (at, kind, message) VALUES (?, ?, ?)", (now_iso(), kind, message)
+            )
+
+    def events(self) -> list[tuple[str, str, str]]:
+        return list(self._db.execute("SELECT at, kind, message FROM events ORDER BY id"))
+
+    # -- captures ----------------------------------------------------------------------------
+    def done_keys(self) -> set[tuple[int, int]]:
+        rows = self._db.execute(
+            "SELECT pose_index, bracket_index FROM captures WHERE status = 'done'"
+        )
+        return {(int(a), int(b)) for a, b in rows}
+
+    def frame_name(self, pose_index: int, bracket_index: int, suffix: str) -> str:
+        return f"frames/p{pose_index:05d}_b{bracket_index:02d}{suffix}"
+
+    def begin_capture(
+        self,
+        *,
+        pose_index: int,
+        bracket_index: int,
+        exposure_s: float,
+        pose: tuple[float, float, float, float],
+        axes_commanded: dict[str, float],
+        axes_measured: dict[str, float],
+        light_dir: list[float],
+        camera_dir: list[float],
+        suffix: str,
+        devices: dict[str, Any],
+        lab_time_s: float,
+    ) -> int:
+        """Insert (or refresh) the pending row for a capture; returns its id."""
+        rel = self.frame_name(pose_index, bracket_index, suffix)
+        with self._db:
+            self._db.execute(
+                "DELETE FROM captures WHERE pose_index = ? AND bracket_index = ? "
+                "AND status = 'pending'",
+                (pose_index, bracket_index),
+            )
+            cur = self._db.execute(
+                "INSERT INTO captures (pose_index, bracket_index, exposure_s, theta_i, phi_i, "
+                "theta_o, phi_o, axes_commanded, axes_measured, light_dir, camera_dir, frame_path, "
+                "status, started_at, devices, lab_time_s) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending', ?, ?, ?)",
+                (
+                    pose_index,
+                    bracket_index,
+                    exposure_s,
+                    *pose,
+                    json.dumps(axes_commanded),
+                    json.dumps(axes_measured),
+                    json.dumps(light_dir),
+                    json.dumps(camera_dir),
+                    rel,
+                    now_iso(),
+                    json.dumps(devices, default=str),
+                    lab_time_s,
+                ),
+            )
+        return int(cur.lastrowid)
+
+    def finish_capture(self, capture_id: int, data: bytes, frame_meta: dict[str, Any]) -> str:
+        """Write the frame safely, then mark the row done. Returns the SHA-256."""
+        (rel,) = self._db.execute(
+            "SELECT frame_path FROM captures WHERE id = ?", (capture_id,)
+        ).fetchone()
+        path = self.root / rel
+        digest = hashlib.sha256(data).hexdigest()
+        try:
+            atomic_write_bytes(path, data)
+        except FileExistsError:
+            # A frame from an interrupted attempt is already in place: keep it (it is data
+            # that was captured), and store the new one beside it rather than overwrite.
+            if sha256_file(path) != digest:
+                k = 1
+                while (alt := path.with_name(f"{path.stem}.r{k}{path.suffix}")).exists():
+                    k += 1
+                atomic_write_bytes(alt, data)
+                rel = str(alt.relative_to(self.root))
+        with self._db:
+            self._db.execute(
+                "UPDATE captures SET status = 'done', sha256 = ?, finished_at = ?, "
+                "frame_meta = ?, frame_path = ? WHERE id = ?",
+                (digest, now_iso(), json.dumps(frame_meta, default=str), rel, capture_id),
+            )
+        return digest
+
+    def adopt_orphans(self) -> int:
+        """Pending rows whose frame made it to disk are adopted (marked done with the
+        checksum of the file on disk). Returns how many were adopted."""
+        rows = list(
+            self._db.execute("SELECT id, frame_path FROM captures WHERE status = 'pending'")
+        )
+        adopted = 0
+        for cid, rel in rows:
+            path = self.root / rel
+            if path.exists():
+                with self._db:
+                    self._db.execute(
+                        "UPDATE captures SET status = 'done', sha256 = ?, finished_at = ?, "
+                        "note = 'adopted on resume' WHERE id = ?",
+                        (sha256_file(path), now_iso(), cid),
+                    )
+                adopted += 1
+        return adopted
+
+    def captures(self, status: str | None = "done") -> Iterator[CaptureRecord]:
+        q = (
+            "SELECT id, pose_index, bracket_index, exposure_s, theta_i, phi_i, theta_o, phi_o, "
+            "axes_commanded, axes_measured, frame_path, sha256, status, devices, frame_meta, "
+            "lab_time_s FROM captures"
+        )
+        args: tuple = ()
+        if status is not None:
+            q += " WHERE status = ?"
+            args = (status,)
+        for r in self._db.execute(q + " ORDER BY pose_index, bracket_index", args).fetchall():
+            yield CaptureRecord(
+                id=r[0],
+                pose_index=r[1],
+                bracket_index=r[2],
+                exposure_s=r[3],
+                theta_i=r[4],
+                phi_i=r[5],
+                theta_o=r[6],
+                phi_o=r[7],
+                axes_commanded=json.loads(r[8]),
+                axes_measured=json.loads(r[9]),
+                frame_path=r[10],
+                sha256=r[11],
+                status=r[12],
+                devices=json.loads(r[13] or "{}"),
+                frame_meta=json.loads(r[14] or "{}"),
+                lab_time_s=r[15],
+            )
+
+    def count(self, status: str = "done") -> int:
+        (n,) = self._db.execute("SELECT COUNT(*) FROM captures WHERE status = ?", (status,)).fetchone()
+        return int(n)
+
+    def verify(self) -> list[str]:
+        """Check every done frame against its SHA-256; return a list of problems."""
+        problems = []
+        for rec in self.captures("done"):
+            path = self.root / rec.frame_path
+            if not path.exists():
+                problems.append(f"{rec.frame_path}: missing")
+            elif sha256_file(path) != rec.sha256:
+                problems.append(f"{rec.frame_path}: checksum mismatch")
+        return problems

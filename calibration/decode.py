@@ -1,0 +1,253 @@
+"""Decode camera frames (DNG/NEF/... RAW through rawpy, linear EXR through OpenEXR) to DN arrays.
+
+RAW follows DESIGN §7 (rawpy 0.28 / LibRaw 0.22): we take ``raw_image_visible`` (the sensor values
+with the masked border cropped, no demosaic, no scaling) and LibRaw's per-colour black level,
+``black_level_per_channel``, which is indexed by *colour index* (``raw_colors_visible``), not by
+position in the 2×2 pattern. The linear value is
+
+    linear = (DN − black[colour_index]) / (white − black[colour_index])        (DESIGN §7)
+
+and no postprocess/auto-brightness is ever applied, so absolute values survive. The white level
+reported by LibRaw is the nominal one; the real clip level can be lower — calibration measures it.
+
+Exposure time: from the gonio JSON metadata (DNG ImageDescription / EXR ``gonio`` attribute) when
+present (exact), else LibRaw's EXIF shutter speed (float32), else NaN.
+
+Every failure raises ``FrameError`` (a ``ValueError``) with a one-line message naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "DecodedFrame",
+    "FrameError",
+    "decode_frame",
+    "linear",
+    "demosaic_to_rgb",
+    "RAW_SUFFIXES",
+    "EXR_SUFFIXES",
+]
+
+RAW_SUFFIXES = frozenset(
+    {".dng", ".nef", ".nrw", ".cr2", ".cr3", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw"}
+)
+EXR_SUFFIXES = frozenset({".exr"})
+_TIFF_RAW_SUFFIXES = frozenset({".dng", ".nef", ".nrw", ".arw", ".pef", ".srw"})
+METADATA_ATTRIBUTE = "gonio"
+
+
+class FrameError(ValueError):
+    """A frame that cannot be decoded; the message is one line and names the file."""
+
+
+@dataclass
+class DecodedFrame:
+    """One decoded frame.
+
+    dn : float32 (H, W, C) for RGB frames, (H, W) for a CFA mosaic.
+    channels : "RGB" | "Y" | "CFA".
+    cfa_pattern : e.g. "RGGB" (letters of the top-left 2×2 tile, row-major) or None.
+    black_level : float32 array broadcastable to ``dn`` (per pixel for a mosaic: the black of
+        each site's colour index; (C,) or scalar for RGB).
+    white_level : nominal white (DN).
+    exposure_s : exposure time (s), NaN if unknown.
+    metadata : the gonio JSON metadata if present, else {}.
+    """
+
+    dn: np.ndarray
+    channels: str
+    cfa_pattern: str | None
+    black_level: np.ndarray
+    white_level: float
+    exposure_s: float
+    metadata: dict = field(default_factory=dict)
+    path: str = ""
+
+
+def linear(frame: DecodedFrame) -> np.ndarray:
+    """(DN − black) / (white − black), float32, same shape as ``frame.dn`` (DESIGN §7)."""
+    black = np.asarray(frame.black_level, dtype=np.float32)
+    return ((frame.dn - black) / (np.float32(frame.white_level) - black)).astype(np.float32)
+
+
+def demosaic_to_rgb(mosaic: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
+    """2×2 superpixel demosaic: (H, W) → (H//2, W//2, 3), the two greens averaged.
+
+    No interpolation, so every output value is a plain (average of) measured site(s): the
+    radiometrically honest choice, at half resolution. Odd trailing rows/columns are dropped.
+    """
+    if len(pattern) != 4 or sorted(pattern) != ["B", "G", "G", "R"]:
+        raise ValueError(f"pattern must be a 2×2 Bayer pattern like 'RGGB' (got {pattern!r})")
+    m = np.asarray(mosaic, dtype=np.float32)
+    h, w = (m.shape[0] // 2) * 2, (m.shape[1] // 2) * 2
+    sites = {}
+    for k, letter in enumerate(pattern):
+        dy, dx = divmod(k, 2)
+        sites.setdefault(letter, []).append(m[dy:h:2, dx:w:2])
+    return np.stack([sites["R"][0], 0.5 * (sites["G"][0] + sites["G"][1]), sites["B"][0]], axis=-1)
+
+
+def decode_frame(path) -> DecodedFrame:
+    """Decode a RAW (DNG, NEF, ...) or EXR file. Raises ``FrameError`` with a one-line message."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if not p.is_file():
+        raise FrameError(f"{p}: no such file")
+    if suffix in EXR_SUFFIXES:
+        return _decode_exr(p)
+    if suffix in RAW_SUFFIXES:
+        return _decode_raw(p)
+    raise FrameError(
+        f"{p}: unknown frame suffix {p.suffix!r} (expected .exr or a RAW such as .dng/.nef)"
+    )
+
+
+def _tiff_metadata(p: Path) -> tuple[dict, float]:
+    """gonio JSON from ImageDescription and EXIF ExposureTime of a TIFF-based RAW, if any."""
+    import tifffile
+
+    md: dict = {}
+    exposure = float("nan")
+    try:
+        with tifffile.TiffFile(p) as tif:
+            page = tif.pages[0]
+            desc = page.tags.get(270)
+            if desc is not None:
+                try:
+                    obj = json.loads(desc.value)
+                    md = obj if isinstance(obj, dict) else {}
+                except (ValueError, TypeError):
+                    md = {}
+            et = page.tags.get(33434)
+            if et is None and page.tags.get(34665) is not None:  # EXIF IFD
+                et_val = page.tags[34665].value.get("ExposureTime")
+            else:
+                et_val = et.value if et is not None else None
+            if et_val is not None:
+                num, den = et_val if isinstance(et_val, tuple) else (et_val, 1)
+                exposure = num / den if den else float("nan")
+    except Exception:  # noqa: BLE001 — not TIFF-based (CR3, RAF): metadata is optional
+        pass
+    return md, exposure
+
+
+def _check_tiff_complete(p: Path) -> None:
+    """Raise FrameError if a TIFF-based RAW's image strips/tiles run past the end of the file.
+
+    LibRaw would also fail (LibRawIOError) but only after printing to stderr; this names the cause.
+    """
+    import tifffile
+
+    size = p.stat().st_size
+    try:
+        with tifffile.TiffFile(p) as tif:
+            need = 0
+            for page in tif.pages:
+                offs, counts = page.dataoffsets, page.databytecounts
+                if offs and counts:
+                    need = max(need, max(o + c for o, c in zip(offs, counts, strict=False)))
+    except Exception:  # noqa: BLE001 — unreadable as TIFF: leave the diagnosis to LibRaw
+        return
+    if need > size:
+        raise FrameError(f"{p}: truncated RAW (file has {size} bytes, image data needs {need})")
+
+
+def _decode_raw(p: Path) -> DecodedFrame:
+    import rawpy
+
+    if p.suffix.lower() in _TIFF_RAW_SUFFIXES:
+        _check_tiff_complete(p)
+
+    try:
+        with rawpy.imread(str(p)) as raw:
+            if raw.raw_type != rawpy.RawType.Flat:
+                raise FrameError(f"{p}: not a Bayer sensor raw ({raw.raw_type})")
+            dn = np.array(raw.raw_image_visible, dtype=np.float32)
+            colors = np.array(raw.raw_colors_visible)
+            black_per_colour = np.asarray(raw.black_level_per_channel, dtype=np.float32)
+            white = float(raw.white_level)
+            desc = raw.color_desc.decode("ascii", "replace")
+            pattern_idx = np.asarray(raw.raw_pattern)
+            shutter = float(raw.other.shutter_speed)
+    except FrameError:
+        raise
+    except (rawpy.LibRawError, OSError, ValueError) as exc:
+        msg = str(exc).strip("b'\"")
+        raise FrameError(f"{p}: cannot decode RAW ({type(exc).__name__}: {msg})") from None
+    if pattern_idx.shape != (2, 2):
+        raise FrameError(f"{p}: unsupported CFA repeat {pattern_idx.shape} (only 2×2 Bayer)")
+    cfa = "".join(desc[i] for i in pattern_idx.ravel())
+    if sorted(cfa) != ["B", "G", "G", "R"]:
+        raise FrameError(f"{p}: unsupported CFA colours {cfa!r} (only R/G/B Bayer)")
+    # Per-pixel black: indexed by colour index (not by pattern position) — DESIGN §7.
+    black = black_per_colour[colors]
+    if p.suffix.lower() in _TIFF_RAW_SUFFIXES:
+        md, tiff_exposure = _tiff_metadata(p)
+    else:
+        md, tiff_exposure = {}, float("nan")
+    exposure = md.get("exposure_s")
+    if exposure is None:  # exact rational EXIF value first, LibRaw's float32 copy last
+        if np.isfinite(tiff_exposure):
+            exposure = tiff_exposure
+        else:
+            exposure = shutter if shutter > 0 else float("nan")
+    return DecodedFrame(
+        dn=dn,
+        channels="CFA",
+        cfa_pattern=cfa,
+        black_level=black,
+        white_level=white,
+        exposure_s=float(exposure),
+        metadata=md,
+        path=str(p),
+    )
+
+
+def _decode_exr(p: Path) -> DecodedFrame:
+    import OpenEXR
+
+    try:
+        with OpenEXR.File(str(p)) as f:
+            # Copy: the binding clears the header dict in place when the file is closed.
+            header = dict(f.header())
+            chans = f.channels()
+            if "RGB" in chans:
+                dn = np.array(chans["RGB"].pixels, dtype=np.float32)
+                kind = "RGB"
+            elif "Y" in chans:
+                dn = np.array(chans["Y"].pixels, dtype=np.float32)
+                kind = "Y"
+            else:
+                names = ", ".join(sorted(chans)) or "none"
+                raise FrameError(f"{p}: EXR has no R,G,B or Y channels (found: {names})")
+    except FrameError:
+        raise
+    except Exception as exc:  # noqa: BLE001 — OpenEXR raises plain RuntimeError/Exception
+        raise FrameError(f"{p}: cannot read EXR ({type(exc).__name__}: {exc})") from None
+    if kind == "RGB" and (dn.ndim != 3 or dn.shape[-1] != 3):
+        raise FrameError(f"{p}: EXR RGB channels have unexpected shape {dn.shape}")
+    md: dict = {}
+    raw_md = header.get(METADATA_ATTRIBUTE)
+    if raw_md is not None:
+        try:
+            md = json.loads(raw_md)
+        except (ValueError, TypeError):
+            raise FrameError(f"{p}: EXR attribute {METADATA_ATTRIBUTE!r} is not JSON") from None
+    black = np.float32(md.get("black_level", 0.0))
+    white = float(md.get("white_level", 1.0))
+    return DecodedFrame(
+        dn=dn,
+        channels=kind,
+        cfa_pattern=None,
+        black_level=np.asarray(black, dtype=np.float32),
+        white_level=white,
+        exposure_s=float(md.get("exposure_s", float("nan"))),
+        metadata=md,
+        path=str(p),
+    )

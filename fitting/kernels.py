@@ -1,0 +1,596 @@
+"""Fused numba kernels for the BRDF models (the fast path of :mod:`fitting.models`).
+
+Layout: a first pass computes the per-sample geometry (cosines, tan²θ_h, ...) once for the N
+direction pairs; a second, parallel pass over all W·N (parameter set × sample) pairs evaluates
+f_r (or log f_r) in one loop body, so nothing of size W·N is materialised except the output.
+The formulas are those of :mod:`fitting.microfacet` and :mod:`fitting.fresnel` (the numpy
+reference path, which the tests compare against this one to 1e-12).
+
+Parameter arrays are 2-D, shape (W, 1) (one value per set) or (W, N) (per set and sample);
+``out`` is (W, N). Compiled with ``cache=True`` so only the first run on a machine pays the
+compile time; ``fastmath=False`` keeps IEEE semantics (inf/NaN guards below rely on it).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+__all__ = [
+    "DIST_BECKMANN",
+    "DIST_GGX",
+    "SHADOW_VCAVITY",
+    "SHADOW_SMITH",
+    "SHADOW_SMITH_RATIONAL",
+    "SHADOW_SMITH_CORRELATED",
+    "FRESNEL_DIELECTRIC",
+    "FRESNEL_CONDUCTOR",
+    "FRESNEL_SCHLICK",
+    "FRESNEL_NONE",
+    "LOBE_PHONG",
+    "LOBE_PHONG_NORMALIZED",
+    "LOBE_BLINN_PHONG",
+    "PARALLEL_MIN_WORK",
+    "exp_neg",
+    "microfacet_geometry",
+    "ts_parameter_table",
+    "torrance_sparrow",
+    "torrance_sparrow_per_sample",
+    "lobe_geometry",
+    "lobe",
+]
+
+DIST_BECKMANN, DIST_GGX = 0, 1
+SHADOW_VCAVITY, SHADOW_SMITH, SHADOW_SMITH_RATIONAL, SHADOW_SMITH_CORRELATED = 0, 1, 2, 3
+FRESNEL_DIELECTRIC, FRESNEL_CONDUCTOR, FRESNEL_SCHLICK, FRESNEL_NONE = 0, 1, 2, 3
+LOBE_PHONG, LOBE_PHONG_NORMALIZED, LOBE_BLINN_PHONG = 0, 1, 2
+
+_PI = math.pi
+_INV_PI = 1.0 / math.pi
+_LOG_PI = math.log(math.pi)
+_INV_SQRT_PI = 1.0 / math.sqrt(math.pi)
+_NINF = -np.inf
+_EXP_UNDERFLOW = 745.2  # exp(−x) == 0.0 in float64 for x above this
+_ERFC_ZERO = 27.3  # erfc(a) and exp(−a²) are 0.0 (or denormal and negligible) above this
+
+# Columns of the microfacet geometry table (one row per direction pair).
+_G_VALID, _G_CI, _G_CO, _G_SI, _G_SO, _G_T2, _G_VH, _G_CH, _G_GV = range(9)
+_G_COLS = 9
+
+# Columns of the per-set parameter table built by `ts_parameter_table`.
+_P_KDPI, _P_LKDPI, _P_KS, _P_LKS, _P_M, _P_IM2, _P_DN, _P_LDN, _P_P1, _P_P2 = range(10)
+_P_COLS = 10
+
+# Below this many (set × sample) evaluations the serial kernels are used: launching the
+# thread pool costs microseconds when idle but milliseconds when the cores are oversubscribed.
+PARALLEL_MIN_WORK = 65536
+
+# Samples per parallel work item: long enough to amortise the scheduling, short enough to
+# balance two cores for W = 1.
+_CHUNK = 1024
+
+
+# exp(−x) for x ∈ [0, 745.2): Cody-Waite reduction x = k ln2 − r, |r| ≤ ln2/2, a degree-13
+# Taylor polynomial for e^r (truncation < 4e-18 relative) and 2^−k from a table. Written with
+# plain arithmetic, floor and a table gather so that LLVM vectorises the loops that use it
+# (libm's exp is an opaque call that keeps them scalar). Accuracy ≈ 2 ulp; tested against
+# numpy's exp in tests/test_models.py.
+_LN2_HI = 6.93147180369123816490e-01
+_LN2_LO = 1.90821492927058770002e-10
+_INV_LN2 = 1.44269504088896338700e00
+_POW2_NEG = np.ldexp(1.0, -np.arange(1090)).astype(np.float64)  # 2^−k, 0 beyond k = 1074
+_EXP_C = tuple(1.0 / math.factorial(i) for i in range(14))
+
+
+@njit(cache=True, inline="always")
+def _exp_neg(x):
+    k = math.floor(x * _INV_LN2 + 0.5)
+    r = (k * _LN2_HI - x) + k * _LN2_LO
+    p = _EXP_C[13]
+    p = p * r + _EXP_C[12]
+    p = p * r + _EXP_C[11]
+    p = p * r + _EXP_C[10]
+    p = p * r + _EXP_C[9]
+    p = p * r + _EXP_C[8]
+    p = p * r + _EXP_C[7]
+    p = p * r + _EXP_C[6]
+    p = p * r + _EXP_C[5]
+    p = p * r + _EXP_C[4]
+    p = p * r + _EXP_C[3]
+    p = p * r + _EXP_C[2]
+    p = p * r + _EXP_C[1]
+    p = p * r + _EXP_C[0]
+    return p * _POW2_NEG[int(k)]
+
+
+@njit(cache=True)
+def exp_neg(x):
+    """exp(−x) for an array x of values in [0, 745.2) by the vectorisable kernel formula."""
+    out = np.empty_like(x)
+    for i in range(x.size):
+        out.flat[i] = _exp_neg(x.flat[i])
+    return out
+
+
+@njit(cache=True, inline="always")
+def _logaddexp(a, b):
+    if a == _NINF:
+        return b
+    if b == _NINF:
+        return a
+    if a > b:
+        return a + math.log1p(math.exp(b - a))
+    return b + math.log1p(math.exp(a - b))
+
+
+@njit(cache=True, inline="always")
+def _geometry_row(wi, wo, geo, j):
+    ci = wi[j, 2]
+    co = wo[j, 2]
+    if not (ci > 0.0 and co > 0.0):
+        return
+    sx = wi[j, 0] + wo[j, 0]
+    sy = wi[j, 1] + wo[j, 1]
+    sz = ci + co
+    rho2 = sx * sx + sy * sy
+    norm = math.sqrt(rho2 + sz * sz)
+    t2 = rho2 / (sz * sz)
+    # ω_i·h and ω_o·h are equal for unit vectors; averaging them keeps f exactly symmetric.
+    vh = (
+        0.5
+        * ((wi[j, 0] * sx + wi[j, 1] * sy + ci * sz) + (wo[j, 0] * sx + wo[j, 1] * sy + co * sz))
+        / norm
+    )
+    vh = min(max(vh, 0.0), 1.0)
+    ch = sz / norm
+    gv = min(0.25 / (ci * co), min(0.5 * ch / (vh * ci), 0.5 * ch / (vh * co)))
+    geo[_G_VALID, j] = 1.0
+    geo[_G_CI, j] = ci
+    geo[_G_CO, j] = co
+    geo[_G_SI, j] = math.sqrt(wi[j, 0] * wi[j, 0] + wi[j, 1] * wi[j, 1])
+    geo[_G_SO, j] = math.sqrt(wo[j, 0] * wo[j, 0] + wo[j, 1] * wo[j, 1])
+    geo[_G_T2, j] = t2
+    geo[_G_VH, j] = vh
+    geo[_G_CH, j] = ch
+    geo[_G_GV, j] = gv
+
+
+@njit(parallel=True, cache=True)
+def _microfacet_geometry_par(wi, wo):
+    geo = np.zeros((_G_COLS, wi.shape[0]))
+    for j in prange(wi.shape[0]):
+        _geometry_row(wi, wo, geo, j)
+    return geo
+
+
+@njit(cache=True)
+def _microfacet_geometry_ser(wi, wo):
+    geo = np.zeros((_G_COLS, wi.shape[0]))
+    for j in range(wi.shape[0]):
+        _geometry_row(wi, wo, geo, j)
+    return geo
+
+
+def microfacet_geometry(wi, wo):
+    """Per-pair geometry table (9, N), column-major so that the stage loops read contiguously:
+    valid, cos θ_i, cos θ_o, sin θ_i, sin θ_o, tan²θ_h, ω·h, cos θ_h and the V-cavity
+    G/(4 cos θ_i cos θ_o).
+
+    sin θ comes from the tangential components (accurate at the pole) and
+    tan²θ_h = (s_x² + s_y²)/s_z² with s = ω_i + ω_o (no normalisation; exact at θ_h = 0).
+    The V-cavity term does not depend on m, so it is computed here once per pair:
+    G/(4 ci co) = min{1/(4 ci co), ch/(2 vh ci), ch/(2 vh co)}, finite as either cosine → 0.
+    """
+    if wi.shape[0] >= PARALLEL_MIN_WORK:
+        return _microfacet_geometry_par(wi, wo)
+    return _microfacet_geometry_ser(wi, wo)
+
+
+@njit(cache=True, inline="always")
+def _c_lambda(c, s, m, dist):
+    """cos θ · Λ(θ), exact Smith (finite at the horizon); see fitting.microfacet._c_lambda."""
+    if dist == DIST_GGX:
+        return 0.5 * (math.sqrt(c * c + m * m * s * s) - c)
+    if s == 0.0:
+        return 0.0
+    a = c / (m * s)
+    if a > _ERFC_ZERO:
+        return 0.0  # a·Λ(a) < 1e-320: avoid libm's slow underflow paths
+    return m * s * 0.5 * (math.exp(-a * a) * _INV_SQRT_PI - a * math.erfc(a))
+
+
+@njit(cache=True, inline="always")
+def _g1_over_cos(c, s, m, dist, rational):
+    if rational and dist == DIST_BECKMANN:
+        a = c / (m * s) if s > 0.0 else np.inf
+        if a < 1.6:
+            # G1/cos = (3.535 + 2.181 a)/(m sin θ (1 + 2.276 a + 2.577 a²))  (Walter 2007 eq. 27)
+            return (3.535 + 2.181 * a) / (m * s * (1.0 + 2.276 * a + 2.577 * a * a))
+        return 1.0 / c
+    return 1.0 / (c + _c_lambda(c, s, m, dist))
+
+
+@njit(cache=True, inline="always")
+def _smith_over_4cc(ci, co, si, so, m, dist, shadow):
+    """Smith G₂/(4 cos θ_i cos θ_o) in a form with a finite limit as either cosine → 0."""
+    if shadow == SHADOW_SMITH_CORRELATED:
+        li = _c_lambda(ci, si, m, dist)
+        lo = _c_lambda(co, so, m, dist)
+        return 0.25 / (ci * co + (co * li + ci * lo))
+    rational = shadow == SHADOW_SMITH_RATIONAL
+    return 0.25 * (
+        _g1_over_cos(ci, si, m, dist, rational) * _g1_over_cos(co, so, m, dist, rational)
+    )
+
+
+@njit(cache=True, inline="always")
+def _fresnel(c, fresnel, p1, p2):
+    if fresnel == FRESNEL_NONE:
+        return 1.0
+    if fresnel == FRESNEL_SCHLICK:
+        x = 1.0 - c
+        x2 = x * x
+        return p1 + (1.0 - p1) * (x2 * x2 * x)
+    if fresnel == FRESNEL_DIELECTRIC:
+        # R_s = (A/B)², R_p = (A'/B')² with one division: F = (A²B'² + A'²B²)/(2 B²B'²).
+        eta2 = p1 * p1
+        u2 = (eta2 - 1.0) + c * c  # exact for η = 1
+        if u2 <= 0.0:
+            return 1.0  # total internal reflection
+        u = math.sqrt(u2)
+        b = c + u
+        bp = eta2 * c + u
+        if b == 0.0:
+            return 1.0  # c = 0 with η = 1: grazing limit, as fitting.fresnel
+        a = (c - u) * bp
+        ap = (eta2 * c - u) * b
+        return 0.5 * (a * a + ap * ap) / (b * b * bp * bp)
+    # Conductor η + ik in real arithmetic (K. D. Möller, *Optics*, 1988; the form Mitsuba uses),
+    # algebraically equal to the complex form of fitting.fresnel.conductor; one division:
+    # F = (r_s + r_p)/2 = (t1 − t2) t3 / ((t1 + t2)(t3 + t4)).
+    c2 = c * c
+    s2 = 1.0 - c2
+    tmp = (p1 * p1 - p2 * p2 - 1.0) + c2
+    a2pb2 = math.sqrt(tmp * tmp + 4.0 * p1 * p1 * p2 * p2)
+    a = math.sqrt(max(0.5 * (a2pb2 + tmp), 0.0))
+    t1 = a2pb2 + c2
+    t2 = 2.0 * c * a
+    t3 = a2pb2 * c2 + s2 * s2
+    t4 = t2 * s2
+    den = (t1 + t2) * (t3 + t4)
+    if den == 0.0:
+        return 1.0
+    return min((t1 - t2) * t3 / den, 1.0)
+
+
+@njit(cache=True)
+def ts_parameter_table(kd, ks, m, p1, p2, dist):
+    """Per-set derived parameters (W, 10): kd/π, log(kd/π), ks, log ks, m, 1/m², the D prefactor
+    1/(π m²) and its log, p1, p2 — divisions and logs done once per set, not per sample.
+    Inputs are 1-D arrays of length W. (``dist`` is accepted for symmetry; both D share the
+    prefactor 1/(π m²).)"""
+    w_count = kd.shape[0]
+    tab = np.empty((w_count, _P_COLS))
+    for w in range(w_count):
+        mv = m[w]
+        tab[w, _P_KDPI] = kd[w] * _INV_PI
+        tab[w, _P_LKDPI] = math.log(kd[w] * _INV_PI) if kd[w] > 0.0 else _NINF
+        tab[w, _P_KS] = ks[w]
+        tab[w, _P_LKS] = math.log(ks[w]) if ks[w] > 0.0 else _NINF
+        tab[w, _P_M] = mv
+        tab[w, _P_IM2] = 1.0 / (mv * mv)
+        tab[w, _P_DN] = 1.0 / (_PI * mv * mv)
+        tab[w, _P_LDN] = -math.log(_PI * mv * mv)
+        tab[w, _P_P1] = p1[w]
+        tab[w, _P_P2] = p2[w]
+    return tab
+
+
+@njit(cache=True, inline="always")
+def _ts_one(geo, j, pt, w, dist, shadow, fresnel, log_out):
+    """f (or log f) for pair j and parameter row w of the tables."""
+    if geo[_G_VALID, j] == 0.0:
+        return _NINF if log_out else 0.0
+    t2 = geo[_G_T2, j]
+    im2 = pt[w, _P_IM2]
+    mv = pt[w, _P_M]
+    if shadow == SHADOW_VCAVITY:
+        g = geo[_G_GV, j]
+    else:
+        g = _smith_over_4cc(
+            geo[_G_CI, j], geo[_G_CO, j], geo[_G_SI, j], geo[_G_SO, j], mv, dist, shadow
+        )
+    fr = _fresnel(geo[_G_VH, j], fresnel, pt[w, _P_P1], pt[w, _P_P2])
+    x = t2 * im2
+    if dist == DIST_BECKMANN:
+        # exp(−x) underflows to 0 beyond x ≈ 745; skip the call there (libm's underflow path is
+        # ~10× slower) and the 0·∞ of cos⁻⁴θ_h = (1 + tan²θ_h)² with it.
+        if x < _EXP_UNDERFLOW:
+            d = math.exp(-x) * (1.0 + t2) * (1.0 + t2) * pt[w, _P_DN]
+        else:
+            d = 0.0
+    else:
+        # D = m²((1 + t2)/(m² + t2))²/π = r²/(π m²) with r = (1 + t2)/(1 + t2/m²)
+        r = (1.0 + t2) / (1.0 + x)
+        d = r * r * pt[w, _P_DN]
+    v = pt[w, _P_KDPI] + pt[w, _P_KS] * (d * g * fr)
+    if not log_out:
+        return v
+    if v > 1e-250:
+        return math.log(v)  # f has 16 good digits, so log f has them in absolute terms
+    # f underflows (narrow lobe far from the peak, kd = 0): stay in log space.
+    if pt[w, _P_KS] > 0.0 and fr > 0.0:
+        if dist == DIST_BECKMANN:
+            log_d = -x + 2.0 * math.log1p(t2) + pt[w, _P_LDN]
+        else:
+            log_d = 2.0 * math.log((1.0 + t2) / (1.0 + x)) + pt[w, _P_LDN]
+        log_g = math.log(g)
+        spec = pt[w, _P_LKS] + log_d + log_g + math.log(fr)
+    else:
+        spec = _NINF
+    return _logaddexp(pt[w, _P_LKDPI], spec)
+
+
+@njit(cache=True, inline="always")
+def _stage_d(geo, j0, dbuf, im2, dn, dist):
+    """D for a chunk, branch-free so that it vectorises (the branch on dist is loop-invariant)."""
+    if dist == DIST_BECKMANN:
+        for i in range(dbuf.size):
+            t2 = geo[_G_T2, j0 + i]
+            x = t2 * im2
+            e = _exp_neg(min(x, 745.0))
+            # exp(−x) underflows to 0 beyond x ≈ 745.2: the select also avoids 0·∞ there.
+            dbuf[i] = e * (1.0 + t2) * (1.0 + t2) * dn if x < _EXP_UNDERFLOW else 0.0
+    else:
+        for i in range(dbuf.size):
+            t2 = geo[_G_T2, j0 + i]
+            # GGX: D = m²((1 + t2)/(m² + t2))²/π = r²/(π m²) with r = (1 + t2)/(1 + t2/m²)
+            r = (1.0 + t2) / (1.0 + t2 * im2)
+            dbuf[i] = r * r * dn
+
+
+@njit(cache=True, inline="always")
+def _stage_f(geo, j0, fbuf, p1, p2, fresnel):
+    """F(ω·h) for a chunk; TIR and the degenerate cases by selects, not branches."""
+    if fresnel == FRESNEL_DIELECTRIC:
+        eta2 = p1 * p1
+        for i in range(fbuf.size):
+            c = geo[_G_VH, j0 + i]
+            u2 = (eta2 - 1.0) + c * c  # exact for η = 1
+            u = math.sqrt(max(u2, 0.0))
+            b = c + u
+            bp = eta2 * c + u
+            a = (c - u) * bp
+            ap = (eta2 * c - u) * b
+            den = b * b * bp * bp
+            fbuf[i] = 0.5 * (a * a + ap * ap) / den if (u2 > 0.0 and den > 0.0) else 1.0
+    elif fresnel == FRESNEL_CONDUCTOR:
+        base = p1 * p1 - p2 * p2 - 1.0
+        four_e2k2 = 4.0 * p1 * p1 * p2 * p2
+        for i in range(fbuf.size):
+            c = geo[_G_VH, j0 + i]
+            c2 = c * c
+            s2 = 1.0 - c2
+            tmp = base + c2  # η² − k² − sin²θ
+            a2pb2 = math.sqrt(tmp * tmp + four_e2k2)
+            a = math.sqrt(max(0.5 * (a2pb2 + tmp), 0.0))
+            t1 = a2pb2 + c2
+            t2 = 2.0 * c * a
+            t3 = a2pb2 * c2 + s2 * s2
+            t4 = t2 * s2
+            den = (t1 + t2) * (t3 + t4)
+            fbuf[i] = min((t1 - t2) * t3 / den, 1.0) if den > 0.0 else 1.0
+    elif fresnel == FRESNEL_SCHLICK:
+        for i in range(fbuf.size):
+            x = 1.0 - geo[_G_VH, j0 + i]
+            x2 = x * x
+            fbuf[i] = p1 + (1.0 - p1) * (x2 * x2 * x)
+    else:
+        for i in range(fbuf.size):
+            fbuf[i] = 1.0
+
+
+@njit(cache=True, inline="always")
+def _stage_g(geo, j0, gbuf, m, dist, shadow):
+    """G/(4 cos θ_i cos θ_o) for a chunk."""
+    if shadow == SHADOW_VCAVITY:
+        for i in range(gbuf.size):
+            gbuf[i] = geo[_G_GV, j0 + i]
+    else:
+        for i in range(gbuf.size):
+            j = j0 + i
+            if geo[_G_VALID, j] != 0.0:
+                gbuf[i] = _smith_over_4cc(
+                    geo[_G_CI, j], geo[_G_CO, j], geo[_G_SI, j], geo[_G_SO, j], m, dist, shadow
+                )
+            else:
+                gbuf[i] = 0.0
+
+
+@njit(cache=True, inline="always")
+def _ts_block(geo, pt, dist, shadow, fresnel, log_out, out, b, n_chunks):
+    n = out.shape[1]
+    w = b // n_chunks
+    j0 = (b - w * n_chunks) * _CHUNK
+    size = min(_CHUNK, n - j0)
+    buf = np.empty((3, size))  # one allocation per work item
+    dbuf = buf[0]
+    gbuf = buf[1]
+    fbuf = buf[2]
+    _stage_d(geo, j0, dbuf, pt[w, _P_IM2], pt[w, _P_DN], dist)
+    _stage_g(geo, j0, gbuf, pt[w, _P_M], dist, shadow)
+    _stage_f(geo, j0, fbuf, pt[w, _P_P1], pt[w, _P_P2], fresnel)
+    kdpi = pt[w, _P_KDPI]
+    ks = pt[w, _P_KS]
+    if not log_out:
+        for i in range(size):
+            v = kdpi + ks * (dbuf[i] * gbuf[i] * fbuf[i])
+            out[w, j0 + i] = v if geo[_G_VALID, j0 + i] != 0.0 else 0.0
+    else:
+        for i in range(size):
+            j = j0 + i
+            v = kdpi + ks * (dbuf[i] * gbuf[i] * fbuf[i])
+            if geo[_G_VALID, j] == 0.0:
+                out[w, j] = _NINF
+            elif v > 1e-250:
+                out[w, j] = math.log(v)  # v has 16 good digits, log v has them absolutely
+            else:  # f underflows (narrow lobe far from its peak): stay in log space
+                out[w, j] = _ts_one(geo, j, pt, w, dist, shadow, fresnel, True)
+
+
+@njit(parallel=True, cache=True)
+def _ts_par(geo, pt, dist, shadow, fresnel, log_out, out):
+    n_chunks = (out.shape[1] + _CHUNK - 1) // _CHUNK
+    for b in prange(out.shape[0] * n_chunks):
+        _ts_block(geo, pt, dist, shadow, fresnel, log_out, out, b, n_chunks)
+
+
+@njit(cache=True)
+def _ts_ser(geo, pt, dist, shadow, fresnel, log_out, out):
+    n_chunks = (out.shape[1] + _CHUNK - 1) // _CHUNK
+    for b in range(out.shape[0] * n_chunks):
+        _ts_block(geo, pt, dist, shadow, fresnel, log_out, out, b, n_chunks)
+
+
+def torrance_sparrow(geo, pt, dist, shadow, fresnel, log_out, out):
+    """f = kd/π + ks D G F/(4 cos θ_i cos θ_o) for every (set w, pair j); log f if ``log_out``.
+
+    ``geo`` from :func:`microfacet_geometry`, ``pt`` from :func:`ts_parameter_table`, ``out``
+    is (W, N). D is the π-normalised Beckmann or GGX, which makes the default (Beckmann,
+    V-cavity) equal to the seed's D_seed G F/(π cos cos) identically (D_seed/π = D_norm/4).
+    Work items are (set, chunk of samples); inside one, D, G and F are computed in separate
+    simple loops (stages) that LLVM can vectorise, then combined.
+    """
+    if out.size >= PARALLEL_MIN_WORK:
+        _ts_par(geo, pt, dist, shadow, fresnel, log_out, out)
+    else:
+        _ts_ser(geo, pt, dist, shadow, fresnel, log_out, out)
+
+
+@njit(parallel=True, cache=True)
+def _ts_per_sample_par(geo, pt, dist, shadow, fresnel, log_out, out):
+    w_count, n = out.shape
+    for i in prange(w_count * n):
+        w = i // n
+        j = i - w * n
+        out[w, j] = _ts_one(geo, j, pt, i, dist, shadow, fresnel, log_out)
+
+
+@njit(cache=True)
+def _ts_per_sample_ser(geo, pt, dist, shadow, fresnel, log_out, out):
+    w_count, n = out.shape
+    for i in range(w_count * n):
+        w = i // n
+        j = i - w * n
+        out[w, j] = _ts_one(geo, j, pt, i, dist, shadow, fresnel, log_out)
+
+
+def torrance_sparrow_per_sample(geo, pt, dist, shadow, fresnel, log_out, out):
+    """As :func:`torrance_sparrow` but with a parameter table of W·N rows (row w·N + j), for
+    parameters that vary per sample as well as per set (scalar loop, no staging)."""
+    if out.size >= PARALLEL_MIN_WORK:
+        _ts_per_sample_par(geo, pt, dist, shadow, fresnel, log_out, out)
+    else:
+        _ts_per_sample_ser(geo, pt, dist, shadow, fresnel, log_out, out)
+
+
+@njit(cache=True, inline="always")
+def _lobe_row(wi, wo, kind, geo, j):
+    ci = wi[j, 2]
+    co = wo[j, 2]
+    if not (ci > 0.0 and co > 0.0):
+        return
+    geo[j, 0] = 1.0
+    if kind == LOBE_BLINN_PHONG:
+        sx = wi[j, 0] + wo[j, 0]
+        sy = wi[j, 1] + wo[j, 1]
+        sz = ci + co
+        base = sz / math.sqrt(sx * sx + sy * sy + sz * sz)
+    else:
+        dot = wi[j, 0] * wo[j, 0] + wi[j, 1] * wo[j, 1] + ci * co
+        base = 2.0 * (ci * co) - dot
+    base = min(base, 1.0)
+    geo[j, 1] = max(base, 0.0)
+    geo[j, 2] = math.log(base) if base > 0.0 else _NINF
+
+
+@njit(parallel=True, cache=True)
+def _lobe_geometry_par(wi, wo, kind):
+    geo = np.zeros((wi.shape[0], 3))
+    for j in prange(wi.shape[0]):
+        _lobe_row(wi, wo, kind, geo, j)
+    return geo
+
+
+@njit(cache=True)
+def _lobe_geometry_ser(wi, wo, kind):
+    geo = np.zeros((wi.shape[0], 3))
+    for j in range(wi.shape[0]):
+        _lobe_row(wi, wo, kind, geo, j)
+    return geo
+
+
+def lobe_geometry(wi, wo, kind):
+    """Per-pair (valid, base, log base) of the Phong-family lobe: base = l̂·r̂ = 2 cos θ_i cos θ_o −
+    ω_i·ω_o (Phong, symmetric in ω_i, ω_o) or cos θ_h (Blinn-Phong), clamped to [0, 1]."""
+    if wi.shape[0] >= PARALLEL_MIN_WORK:
+        return _lobe_geometry_par(wi, wo, kind)
+    return _lobe_geometry_ser(wi, wo, kind)
+
+
+@njit(cache=True, inline="always")
+def _lobe_log_norm(n, kind):
+    if kind == LOBE_PHONG:
+        return 0.0
+    if kind == LOBE_PHONG_NORMALIZED:
+        return math.log((n + 2.0) / (2.0 * _PI))
+    # exact normal-incidence normalisation of Blinn-Phong (see fitting.models)
+    return math.log((n + 2.0) * (n + 4.0) / (8.0 * _PI * (math.pow(2.0, -0.5 * n) + n)))
+
+
+@njit(cache=True, inline="always")
+def _lobe_one(geo, kd, ks, nexp, kind, log_out, out, idx):
+    n = out.shape[1]
+    ckd = 1 if kd.shape[1] > 1 else 0
+    cks = 1 if ks.shape[1] > 1 else 0
+    cn = 1 if nexp.shape[1] > 1 else 0
+    w = idx // n
+    j = idx - w * n
+    if geo[j, 0] == 0.0:
+        out[w, j] = _NINF if log_out else 0.0
+        return
+    kdv = kd[w, j * ckd]
+    ksv = ks[w, j * cks]
+    nv = nexp[w, j * cn]
+    logb = geo[j, 2]
+    if geo[j, 1] > 0.0 and ksv > 0.0:
+        spec = math.log(ksv) + _lobe_log_norm(nv, kind) + nv * logb
+    else:
+        spec = _NINF
+    if log_out:
+        diff = math.log(kdv * _INV_PI) if kdv > 0.0 else _NINF
+        out[w, j] = _logaddexp(diff, spec)
+    else:
+        out[w, j] = kdv * _INV_PI + (math.exp(spec) if spec > _NINF else 0.0)
+
+
+@njit(parallel=True, cache=True)
+def _lobe_par(geo, kd, ks, nexp, kind, log_out, out):
+    for idx in prange(out.size):
+        _lobe_one(geo, kd, ks, nexp, kind, log_out, out, idx)
+
+
+@njit(cache=True)
+def _lobe_ser(geo, kd, ks, nexp, kind, log_out, out):
+    for idx in range(out.size):
+        _lobe_one(geo, kd, ks, nexp, kind, log_out, out, idx)
+
+
+def lobe(geo, kd, ks, nexp, kind, log_out, out):
+    """f = kd/π + ks · norm(n) · base^n, evaluated as exp(n log base) so n up to 1e6 is exact."""
+    if out.size >= PARALLEL_MIN_WORK:
+        _lobe_par(geo, kd, ks, nexp, kind, log_out, out)
+    else:
+        _lobe_ser(geo, kd, ks, nexp, kind, log_out, out)

@@ -1,0 +1,212 @@
+"""The BRDF sample table (DESIGN §4): `samples.parquet`, the contract between calibration and
+fitting. A table with only the required columns is valid input, so samples measured by other
+instruments can be fitted too.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from fitting.directions import spherical_to_vector
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "REQUIRED_COLUMNS",
+    "Flags",
+    "SampleTable",
+    "SamplesError",
+    "read_samples",
+    "write_samples",
+]
+
+SCHEMA_VERSION = 1
+REQUIRED_COLUMNS: dict[str, pa.DataType] = {
+    "theta_i": pa.float64(),
+    "phi_i": pa.float64(),
+    "theta_o": pa.float64(),
+    "phi_o": pa.float64(),
+    "channel": pa.string(),
+    "f": pa.float64(),
+    "sigma": pa.float64(),
+}
+OPTIONAL_COLUMNS: dict[str, pa.DataType] = {
+    "capture_id": pa.int64(),
+    "pixel_x": pa.int32(),
+    "pixel_y": pa.int32(),
+    "flags": pa.int32(),
+}
+CHANNELS = ("R", "G", "B", "Y")
+
+
+class Flags:
+    """Bitmask values of the `flags` column (0 = good)."""
+
+    SATURATED = 1
+    DARK = 2
+    BELOW_HORIZON = 4
+    MASKED = 8
+
+
+class SamplesError(ValueError):
+    """A samples file is missing, unreadable, or not a samples table. The message is one line."""
+
+
+@dataclass
+class SampleTable:
+    """Columns as numpy arrays (angles in radians, f and sigma in sr⁻¹)."""
+
+    theta_i: np.ndarray
+    phi_i: np.ndarray
+    theta_o: np.ndarray
+    phi_o: np.ndarray
+    channel: np.ndarray
+    f: np.ndarray
+    sigma: np.ndarray
+    flags: np.ndarray
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+    metadata: dict[str, str] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.f.shape[0])
+
+    @property
+    def channels(self) -> list[str]:
+        """Channels present, in canonical order R, G, B, Y then any others."""
+        present = list(dict.fromkeys(self.channel.tolist()))
+        order = {c: i for i, c in enumerate(CHANNELS)}
+        return sorted(present, key=lambda c: order.get(c, len(order)))
+
+    @property
+    def wi(self) -> np.ndarray:
+        return spherical_to_vector(self.theta_i, self.phi_i)
+
+    @property
+    def wo(self) -> np.ndarray:
+        return spherical_to_vector(self.theta_o, self.phi_o)
+
+    @property
+    def relative(self) -> bool:
+        """True when calibration could not make the values absolute."""
+        return self.metadata.get("gonio.absolute", "true").lower() != "true"
+
+    def select(self, mask: np.ndarray) -> SampleTable:
+        mask = np.asarray(mask, dtype=bool)
+        return SampleTable(
+            theta_i=self.theta_i[mask],
+            phi_i=self.phi_i[mask],
+            theta_o=self.theta_o[mask],
+            phi_o=self.phi_o[mask],
+            channel=self.channel[mask],
+            f=self.f[mask],
+            sigma=self.sigma[mask],
+            flags=self.flags[mask],
+            extra={k: v[mask] for k, v in self.extra.items()},
+            metadata=dict(self.metadata),
+        )
+
+    def good(self) -> SampleTable:
+        """Rows with flags == 0 and finite values and positive σ."""
+        ok = (self.flags == 0) & np.isfinite(self.f) & np.isfinite(self.sigma) & (self.sigma > 0)
+        return self.select(ok)
+
+
+def write_samples(path: str | os.PathLike, table: SampleTable) -> Path:
+    """Write atomically (temp file, fsync, rename) with units and schema version in metadata."""
+    path = Path(path)
+    cols = {
+        "theta_i": pa.array(table.theta_i, pa.float64()),
+        "phi_i": pa.array(table.phi_i, pa.float64()),
+        "theta_o": pa.array(table.theta_o, pa.float64()),
+        "phi_o": pa.array(table.phi_o, pa.float64()),
+        "channel": pa.array(table.channel.astype(str), pa.string()),
+        "f": pa.array(table.f, pa.float64()),
+        "sigma": pa.array(table.sigma, pa.float64()),
+        "flags": pa.array(np.asarray(table.flags, dtype=np.int32), pa.int32()),
+    }
+    for name, values in table.extra.items():
+        dtype = OPTIONAL_COLUMNS.get(name)
+        cols[name] = pa.array(values, dtype) if dtype is not None else pa.array(values)
+    meta = {
+        "gonio.schema_version": str(SCHEMA_VERSION),
+        "gonio.units": json.dumps(
+            {"theta_i": "rad", "phi_i": "rad", "theta_o": "rad", "phi_o": "rad",
+             "f": "1/sr", "sigma": "1/sr"}
+        ),
+    }
+    meta.update(table.metadata)
+    arrow = pa.table(cols).replace_schema_metadata({k.encode(): v.encode() for k, v in meta.items()})
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        pq.write_table(arrow, tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def read_samples(path: str | os.PathLike) -> SampleTable:
+    """Read and validate a samples table. Raises SamplesError with a one-line reason."""
+    path = Path(path)
+    if not path.exists():
+        raise SamplesError(f"{path}: no such file")
+    if path.is_dir():
+        raise SamplesError(f"{path}: is a directory, expected a samples .parquet file")
+    try:
+        arrow = pq.read_table(path)
+    except Exception as exc:  # pyarrow raises several types for a non-Parquet file
+        raise SamplesError(f"{path}: not a Parquet samples table ({type(exc).__name__})") from None
+    missing = [c for c in REQUIRED_COLUMNS if c not in arrow.column_names]
+    if missing:
+        raise SamplesError(
+            f"{path}: not a samples table, missing column(s) {', '.join(missing)} "
+            f"(required: {', '.join(REQUIRED_COLUMNS)})"
+        )
+    raw_meta = arrow.schema.metadata or {}
+    meta = {k.decode(): v.decode() for k, v in raw_meta.items() if not k.startswith(b"ARROW")}
+    version = meta.get("gonio.schema_version")
+    if version is not None and version.isdigit() and int(version) > SCHEMA_VERSION:
+        raise SamplesError(
+            f"{path}: samples schema version {version} is newer than this gonio supports "
+            f"({SCHEMA_VERSION}); upgrade gonio"
+        )
+    if arrow.num_rows == 0:
+        raise SamplesError(f"{path}: the samples table is empty")
+
+    def col(name: str, dtype: type) -> np.ndarray:
+        try:
+            return np.asarray(arrow.column(name).to_numpy(zero_copy_only=False), dtype=dtype)
+        except (TypeError, ValueError, pa.ArrowInvalid):
+            raise SamplesError(f"{path}: column {name!r} is not {dtype.__name__}") from None
+
+    f = col("f", np.float64)
+    sigma = col("sigma", np.float64)
+    angles = {c: col(c, np.float64) for c in ("theta_i", "phi_i", "theta_o", "phi_o")}
+    finite = np.isfinite(f) & np.isfinite(sigma)
+    for a in angles.values():
+        finite &= np.isfinite(a)
+    if not finite.any():
+        raise SamplesError(f"{path}: no row has finite angles, f and sigma (all NaN or inf)")
+    flags = (
+        col("flags", np.int64).astype(np.int32)
+        if "flags" in arrow.column_names
+        else np.zeros(arrow.num_rows, np.int32)
+    )
+    extra = {
+        name: col(name, np.int64)
+        for name in ("capture_id", "pixel_x", "pixel_y")
+        if name in arrow.column_names
+    }
+    channel = np.asarray(arrow.column("channel").to_pylist(), dtype=object).astype(str)
+    return SampleTable(
+        channel=channel, f=f, sigma=sigma, flags=flags, extra=extra, metadata=meta, **angles
+    )

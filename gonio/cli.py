@@ -1,0 +1,267 @@
+"""The `gonio` command line. Subcommand names and options are contracts (issue #2)."""
+
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+__all__ = ["app", "main"]
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="gonio: gonioreflectometer acquisition, calibration and BRDF fitting.",
+    pretty_exceptions_enable=False,
+)
+out = Console()
+err = Console(stderr=True)
+_DEBUG = {"on": False}
+
+
+def _version_cb(value: bool) -> None:
+    if value:
+        from gonio.pipeline import _version
+
+        out.print(f"gonio {_version()}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version_cb, is_eager=True, help="Show version.")
+    ] = False,
+    debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")] = False,
+) -> None:
+    _DEBUG["on"] = debug
+
+
+@app.command()
+def demo(
+    out_dir: Annotated[Path | None, typer.Option("--out", help="Run directory to create.")] = None,
+    scene: Annotated[Path | None, typer.Option("--scene", help="Scene TOML to simulate.")] = None,
+    quick: Annotated[bool, typer.Option("--quick", help="Shorter MCMC (≈1 min).")] = False,
+) -> None:
+    """Simulated acquisition → calibration → fit → report; prints the report path."""
+    from gonio.pipeline import demo as run_demo
+
+    report = run_demo(out_dir, scene, quick)
+    out.print(str(report))
+
+
+@app.command()
+def acquire(
+    rig: Annotated[Path | None, typer.Option("--rig", help="Rig TOML.")] = None,
+    plan: Annotated[Path | None, typer.Option("--plan", help="Plan TOML.")] = None,
+    out_dir: Annotated[Path, typer.Option("--out", help="Run directory (resumed if incomplete).")]
+    = ...,  # type: ignore[assignment]
+    scene: Annotated[Path | None, typer.Option("--scene", help="Override the rig's scene.")] = None,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+) -> None:
+    """Run a plan on a rig into OUT; resume OUT when it holds an incomplete run."""
+    from gonio.pipeline import acquire as run_acquire
+
+    res = run_acquire(rig, plan, out_dir, scene_path=scene, progress=progress)
+    o = res.outcome
+    out.print(
+        f"{res.run_dir}: {o.reason}; {o.captured} new capture(s), {o.adopted} recovered, "
+        f"{o.total_done} done in total; lab time {o.lab_time_s:.1f} s"
+    )
+    if not o.complete:
+        raise typer.Exit(3)
+
+
+@app.command()
+def calibrate(
+    run_dir: Annotated[Path, typer.Argument(help="Run directory.")],
+    bin_px: Annotated[int, typer.Option(help="Region size in (super)pixels.")] = 4,
+    mode: Annotated[str, typer.Option(help='"mean" of the region\'s pixels (every photon) or '
+                                      '"center" pixel only (exact directions).')] = "mean",
+) -> None:
+    """Reduce RUN_DIR's frames to RUN_DIR/samples.parquet."""
+    from calibration.reduce import ReduceOptions, reduce_run
+
+    if bin_px < 1:
+        raise typer.BadParameter("--bin-px must be ≥ 1")
+    if mode not in ("mean", "center"):
+        raise typer.BadParameter('--mode must be "mean" or "center"')
+    table = reduce_run(run_dir, ReduceOptions(bin_px=bin_px, mode=mode), progress=True)
+    out.print(f"{run_dir / 'samples.parquet'}: {len(table)} samples")
+
+
+def _kv(items: list[str], what: str) -> dict[str, str]:
+    from gonio.errors import UserError
+
+    result = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise UserError(f"{what} {item!r}: expected KEY=VALUE")
+        result[key.strip()] = value.strip()
+    return result
+
+
+@app.command()
+def fit(
+    samples: Annotated[Path, typer.Argument(help="samples.parquet (any table with the DESIGN §4 "
+                                            "required columns).")],
+    model: Annotated[str, typer.Option("--model", help="Model name (see `gonio models`).")]
+    = "torrance-sparrow",
+    option: Annotated[list[str], typer.Option("--option", help="Model option KEY=VALUE.")] = [],  # noqa: B006
+    fix: Annotated[list[str], typer.Option("--fix", help="Hold NAME=VALUE fixed.")] = [],  # noqa: B006
+    shared: Annotated[str, typer.Option(help="Comma list of parameters shared by channels.")]
+    = "m",
+    channels: Annotated[str | None, typer.Option(help="Comma list, e.g. R,G,B.")] = None,
+    no_mcmc: Annotated[bool, typer.Option("--no-mcmc", help="Least squares only.")] = False,
+    walkers: Annotated[int, typer.Option(help="emcee walkers.")] = 32,
+    steps: Annotated[int, typer.Option(help="Maximum MCMC steps.")] = 3000,
+    time_budget: Annotated[float | None, typer.Option(help="MCMC wall-time budget [s].")] = None,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    out_dir: Annotated[Path | None, typer.Option("--out", help="Output directory "
+                                                 "(default: beside SAMPLES).")] = None,
+) -> None:
+    """Fit a model to SAMPLES: writes fit-NAME.json and fit-NAME.h5."""
+    from fitting import models as model_registry
+    from fitting.fit import fit_samples
+    from fitting.samples import read_samples
+    from gonio.errors import UserError
+
+    table = read_samples(samples)
+    if model not in model_registry.names():
+        raise UserError(f"unknown model {model!r}; known: {', '.join(model_registry.names())}")
+    if walkers < 2 or steps < 1:
+        raise UserError("--walkers must be ≥ 2 and --steps ≥ 1")
+    fixed = {k: float(v) for k, v in _kv(fix, "--fix").items()}
+    chans = [c.strip() for c in channels.split(",")] if channels else None
+    result = fit_samples(
+        table,
+        model,
+        options=_kv(option, "--option"),
+        channels=chans,
+        shared=tuple(s.strip() for s in shared.split(",") if s.strip()),
+        fix=fixed,
+        mcmc=not no_mcmc,
+        walkers=walkers,
+        steps=steps,
+        time_budget_s=time_budget,
+        seed=seed,
+        out_dir=out_dir or samples.parent,
+        progress=True,
+    )
+    t = Table(title=f"{model} fit")
+    for col in ("parameter", "MAP", "median", "p16", "p84"):
+        t.add_column(col, justify="right")
+    for name, p in result.to_dict()["parameters"].items():
+        t.add_row(name, *(f"{p[k]:.5g}" for k in ("map", "median", "p16", "p84")))
+    out.print(t)
+
+
+@app.command(name="calibrate-camera")
+def calibrate_camera(
+    images: Annotated[list[Path], typer.Argument(help="Board images (JPEG/PNG/TIFF).")],
+    board: Annotated[str, typer.Option("--board", help="charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT "
+                                       "or chessboard:COLSxROWS:SQUARE_M")] = ...,  # type: ignore[assignment]
+    fix_aspect: Annotated[bool, typer.Option("--fix-aspect", help="Hold fx/fy fixed.")] = False,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the result as JSON.")]
+    = None,
+) -> None:
+    """Camera intrinsics and distortion from board images (OpenCV 5)."""
+    from calibration.camera_model import (
+        calibrate_images,
+        format_result,
+        parse_board,
+        write_result_json,
+    )
+
+    result = calibrate_images(list(images), parse_board(board), fix_aspect=fix_aspect)
+    out.print(format_result(result), markup=False, highlight=False)
+    if json_out is not None:
+        write_result_json(result, json_out)
+
+
+@app.command()
+def report(run_dir: Annotated[Path, typer.Argument(help="Run directory.")]) -> None:
+    """Write RUN_DIR/report.html (self-contained)."""
+    from gonio.report import write_report
+
+    out.print(str(write_report(run_dir)))
+
+
+@app.command(name="models")
+def models_cmd(
+    check: Annotated[bool, typer.Option("--check", help="Measure properties of each model.")]
+    = False,
+) -> None:
+    """List the BRDF models with their parameters, units and bounds."""
+    from fitting import models as registry
+
+    t = Table(title="BRDF models (f_r in 1/sr)")
+    for col in ("model", "parameter", "unit", "lower", "upper", "sampled in"):
+        t.add_column(col)
+    for name in registry.names():
+        m = registry.get(name)
+        for i, p in enumerate(m.parameters):
+            t.add_row(name if i == 0 else "", p.name, p.unit, f"{p.lower:g}", f"{p.upper:g}",
+                      "log" if p.log else "linear")
+    out.print(t)
+    if check:
+        from fitting.properties import property_table
+
+        rows = property_table()
+        pt = Table(title="Measured properties")
+        keys = list(rows[0]) if rows else []
+        for k in keys:
+            pt.add_column(k)
+        for r in rows:
+            pt.add_row(*(("yes" if v else "no") if isinstance(v, bool) else str(v)
+                         for v in r.values()))
+        out.print(pt)
+
+
+def main() -> None:
+    """Entry point: user mistakes print one line (no traceback) and exit 2."""
+    warnings.filterwarnings("ignore", category=FutureWarning)
+    from gonio.errors import user_error_types
+
+    debug = "--debug" in sys.argv[1:] or os.environ.get("GONIO_DEBUG") == "1"
+    try:
+        rc = app(standalone_mode=False)
+        if isinstance(rc, int) and rc:
+            sys.exit(rc)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except typer.Abort:
+        err.print("aborted")
+        sys.exit(130)
+    except KeyboardInterrupt:
+        err.print("interrupted")
+        sys.exit(130)
+    except Exception as exc:  # the one place where errors meet the user
+        import click
+
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            sys.exit(exc.exit_code)
+        if debug:
+            raise
+        if isinstance(exc, user_error_types()):
+            msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            # Plain write, not rich: rich would wrap a long path onto a second line.
+            sys.stderr.write(f"error: {msg}\n")
+            sys.exit(2)
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        sys.stderr.write(
+            f"internal error: {type(exc).__name__}: {first} (run with --debug for a traceback)\n"
+        )
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,113 @@
+"""The simulated camera device: Mitsuba radiance → EMVA 1288 sensor → EXR or DNG bytes.
+
+It implements `acquisition.protocols.Camera`. Where the arms *physically* are comes from the
+servo emulator's true positions (which include any injected mounting offset), not from what
+the driver commanded — so a calibration error in the rig shows up in the images as it would
+on a real rig.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from acquisition.clock import Clock
+from acquisition.protocols import Frame
+from simulator.frames import encode_dng, encode_exr
+from simulator.render import Renderer
+from simulator.scene import Scene
+from simulator.sensor import Sensor
+
+__all__ = ["SimCamera"]
+
+
+class SimCamera:
+    def __init__(
+        self,
+        scene: Scene,
+        clock: Clock,
+        positions_m: Callable[[], tuple[np.ndarray, np.ndarray]],
+        light_level: Callable[[], float],
+        readout_s: float = 0.05,
+        renderer: Renderer | None = None,
+    ) -> None:
+        self.scene = scene
+        self.clock = clock
+        self._positions = positions_m
+        self._light_level = light_level
+        self.readout_s = readout_s
+        self.renderer = renderer or Renderer(scene)
+        self.sensor = Sensor(
+            scene.sensor,
+            scene.camera.f_number,
+            rng=np.random.default_rng(scene.seed),
+            intrinsics=self.renderer.intrinsics,
+        )
+        self.captures = 0
+
+    def supported_exposures(self) -> tuple[float, float]:
+        return (1e-5, 30.0)
+
+    @property
+    def clip_level_dn(self) -> float:
+        """Highest DN that is certainly not clipped: the full well sits below the ADC's white
+        level, and read noise is added after the well clips, so stay 4σ_read below it."""
+        s = self.scene.sensor
+        well = s.black_level_dn + (s.full_well_e - 4.0 * s.read_noise_e) / s.gain_e_per_dn
+        return float(math.floor(min(well, 2**s.adc_bits - 1)))
+
+    def describe(self) -> dict[str, Any]:
+        s = self.scene.sensor
+        k = self.renderer.intrinsics
+        return {
+            "model": "gonio simulated camera (Mitsuba + EMVA 1288)",
+            "format": self.scene.camera.format,
+            "resolution": [int(k["width"]), int(k["height"])],
+            "fx": k["fx"],
+            "fy": k["fy"],
+            "cx": k["cx"],
+            "cy": k["cy"],
+            "f_number": self.scene.camera.f_number,
+            "pixel_pitch_m": s.pixel_pitch_m,
+            "quantum_efficiency": s.quantum_efficiency,
+            "wavelength_m": s.wavelength_m,
+            "gain_e_per_dn": s.gain_e_per_dn,
+            "black_level_dn": s.black_level_dn,
+            "white_level_dn": self.clip_level_dn,
+            "read_noise_e": s.read_noise_e,
+            "bayer": s.bayer or "none",
+        }
+
+    def capture(self, exposure_s: float) -> Frame:
+        light_pos, camera_pos = self._positions()
+        level = float(self._light_level())
+        radiance = self.renderer.render(light_pos, camera_pos, intensity_scale=level)
+        dn = self.sensor.capture(radiance, exposure_s)
+        self.captures += 1
+        meta = {
+            "exposure_s": float(exposure_s),
+            "black_level_dn": self.scene.sensor.black_level_dn,
+            "white_level": 2**self.scene.sensor.adc_bits - 1,
+            "capture": self.captures,
+        }
+        if self.scene.camera.format == "dng":
+            if dn.ndim != 2:
+                raise ValueError("DNG output needs a Bayer sensor (set sensor.bayer = \"RGGB\")")
+            data = encode_dng(
+                dn,
+                meta,
+                cfa_pattern=self.scene.sensor.bayer,
+                black_level=self.scene.sensor.black_level_dn,
+                white_level=2**self.scene.sensor.adc_bits - 1,
+                exposure_s=exposure_s,
+            )
+            suffix = ".dng"
+        else:
+            data = encode_exr(dn.astype(np.float32), meta)
+            suffix = ".exr"
+        # Lab time: the shutter is open for the exposure, then the sensor reads out.
+        self.clock.sleep(exposure_s + self.readout_s)
+        return Frame(data=data, suffix=suffix, metadata=meta)

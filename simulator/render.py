@@ -1,0 +1,327 @@
+"""Mitsuba 3 radiance renderer for the simulated gonioreflectometer camera.
+
+One Mitsuba scene is loaded per material; each pose only moves the point light and the camera
+through ``mi.traverse`` + ``params.update()`` (no reload, no re-tracing of kernels), which is what
+makes a 64×64 capture cost a few ms in ``llvm_ad_rgb`` (DESIGN §7).
+
+Radiometry: pixels are radiance L in W m⁻² sr⁻¹ (the ``hdrfilm`` value with a ``box`` pixel filter;
+no exposure, no vignetting — the sensor model adds those). With a point light of radiant intensity
+I (W sr⁻¹) and the ``direct`` integrator a surface point returns exactly
+    L = f_r(ω_i, ω_o) · I · cos θ_i / r²                                  (rendering equation)
+at 1 spp, because the light has no area to sample.
+
+Pixel sampling: a ``stratified`` sampler with ``jitter=False``. At spp = 1 every pixel is sampled
+exactly through its centre (so the per-pixel geometry in ``pixel_rays`` is exact); at spp = n² the
+pixel is integrated with the n×n midpoint rule over its area.
+
+Camera model (verified by tests/test_sim_render.py): an ideal pinhole, no distortion, square
+pixels, horizontal field of view ``scene.camera.fov_deg`` spanning the full image width, principal
+point at the image centre. In OpenCV convention (pixel centres at integer coordinates, x to the
+right, y down, z forward):
+    fx = fy = (W/2) / tan(fov_x/2),  cx = W/2 − 1/2,  cy = H/2 − 1/2.
+Camera orientation: ``look_at(camera_pos, target, up)`` with ``up = +z`` (the sample normal) unless
+the view is within ~2.6° of the normal, then ``up = +y`` (``look_at_up``). Mitsuba's camera frame
+has columns (left, up, forward); the OpenCV frame is (−left, −up, forward): ``world_to_camera_cv``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from simulator.scene import (
+    BlendMaterial,
+    DiffuseMaterial,
+    RoughConductorMaterial,
+    RoughPlasticMaterial,
+    Scene,
+)
+from simulator.variant import ensure_variant
+
+__all__ = [
+    "Renderer",
+    "camera_intrinsics",
+    "look_at_up",
+    "camera_frame",
+    "world_to_camera_cv",
+    "material_dict",
+]
+
+
+def _rgb(value) -> dict:
+    return {"type": "rgb", "value": [float(v) for v in value]}
+
+
+def material_dict(material) -> dict:
+    """Mitsuba ``load_dict`` description of a scene material (simulator.scene types)."""
+    if isinstance(material, DiffuseMaterial):
+        return {"type": "diffuse", "reflectance": _rgb(material.reflectance)}
+    if isinstance(material, RoughConductorMaterial):
+        d = {
+            "type": "roughconductor",
+            "distribution": material.distribution,
+            "alpha": float(material.alpha),
+            "specular_reflectance": _rgb(material.specular_reflectance),
+        }
+        if material.eta is not None or material.k is not None:
+            if material.eta is None or material.k is None:
+                raise ValueError("roughconductor: give both eta and k, or a conductor preset")
+            d["eta"] = _rgb(material.eta)
+            d["k"] = _rgb(material.k)
+        else:
+            d["material"] = material.conductor or "none"
+        return d
+    if isinstance(material, RoughPlasticMaterial):
+        return {
+            "type": "roughplastic",
+            "distribution": material.distribution,
+            "alpha": float(material.alpha),
+            "diffuse_reflectance": _rgb(material.diffuse_reflectance),
+            "int_ior": float(material.int_ior),
+            "ext_ior": float(material.ext_ior),
+        }
+    if isinstance(material, BlendMaterial):
+        # Mitsuba blendbsdf: weight 0 selects the first nested BSDF, 1 the second, i.e.
+        # f = (1 − w)·first + w·second. Nested BSDFs are taken in declaration order.
+        return {
+            "type": "blendbsdf",
+            "weight": float(material.weight),
+            "bsdf_0_first": material_dict(material.first),
+            "bsdf_1_second": material_dict(material.second),
+        }
+    raise TypeError(f"unsupported material type {type(material).__name__}")
+
+
+def look_at_up(camera_pos_m, target_m=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Up vector used for the camera: +z, or +y when the view is (nearly) along ±z."""
+    d = np.asarray(target_m, float) - np.asarray(camera_pos_m, float)
+    n = np.linalg.norm(d)
+    if n == 0:
+        raise ValueError("camera position equals the target: the view direction is undefined")
+    # cos 2.6° ≈ 0.999: beyond that cross(up, dir) becomes ill-conditioned.
+    if abs(d[2] / n) > 0.999:
+        return np.array([0.0, 1.0, 0.0])
+    return np.array([0.0, 0.0, 1.0])
+
+
+def camera_frame(camera_pos_m, target_m=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """4×4 camera-to-world matrix exactly as Mitsuba's ``Transform4f.look_at`` builds it.
+
+    Columns: left = normalize(up × dir), up' = dir × left, dir = normalize(target − origin), origin.
+    """
+    o = np.asarray(camera_pos_m, float)
+    d = np.asarray(target_m, float) - o
+    d = d / np.linalg.norm(d)
+    up = look_at_up(o, target_m)
+    left = np.cross(up, d)
+    left /= np.linalg.norm(left)
+    new_up = np.cross(d, left)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, o
+    return m
+
+
+def world_to_camera_cv(camera_pos_m, target_m=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) with x_cam = R·X_world + t in OpenCV axes (x right, y down, z forward)."""
+    m = camera_frame(camera_pos_m, target_m)
+    axes = np.stack([-m[:3, 0], -m[:3, 1], m[:3, 2]], axis=1)  # camera→world rotation (CV axes)
+    r = axes.T
+    t = -r @ m[:3, 3]
+    return r, t
+
+
+def camera_intrinsics(scene: Scene) -> dict:
+    """Pinhole intrinsics (pixels, OpenCV convention) of the simulated camera.
+
+    fx = fy = (W/2)/tan(fov_x/2) (Mitsuba ``fov_axis='x'``: the fov spans the full width);
+    principal point at the centre of the image, i.e. (W/2 − 1/2, H/2 − 1/2) when pixel centres
+    sit at integer coordinates.
+    """
+    w, h = scene.camera.resolution
+    fx = (w / 2.0) / np.tan(np.radians(scene.camera.fov_deg) / 2.0)
+    return {"fx": fx, "fy": fx, "cx": w / 2.0 - 0.5, "cy": h / 2.0 - 0.5, "width": w, "height": h}
+
+
+class Renderer:
+    """Radiance images of the flat sample for arbitrary light and camera positions.
+
+    Parameters
+    ----------
+    scene : simulator.scene.Scene
+    spp : int
+        samples per pixel; must be a perfect square (stratified midpoint grid). 1 = pixel centre,
+        exact for a point light with the ``direct`` integrator.
+    variant : str, optional
+        Mitsuba variant; default ``choose_variant()`` (llvm_ad_rgb if usable, else scalar_rgb).
+    """
+
+    def __init__(self, scene: Scene, spp: int = 1, variant: str | None = None):
+        import mitsuba as mi
+
+        if variant is None:
+            self.variant = ensure_variant()
+        else:
+            self.variant = variant
+            if mi.variant() != variant:
+                mi.set_variant(variant)
+        n = int(round(np.sqrt(spp)))
+        if n * n != spp or spp < 1:
+            raise ValueError(f"spp must be a perfect square ≥ 1 (got {spp})")
+        self.spp = spp
+        self.scene = scene
+        self._mi = mi
+        w, h = scene.camera.resolution
+        half = scene.sample.size_m / 2.0
+        T = mi.ScalarTransform4f
+        to_world = T().look_at(origin=[0.0, 0.0, 1.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0])
+        desc = {
+            "type": "scene",
+            # Point light, one flat one-sided sample: no interreflection → direct lighting only.
+            # bsdf_samples=0: BSDF sampling can never hit a delta light, it would only cost time.
+            "integrator": {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0},
+            "sensor": {
+                "type": "perspective",
+                "fov": float(scene.camera.fov_deg),
+                "fov_axis": "x",
+                "near_clip": 1e-4,
+                "far_clip": 1e4,
+                "to_world": to_world,
+                "sampler": {"type": "stratified", "sample_count": spp, "jitter": False},
+                "film": {
+                    "type": "hdrfilm",
+                    "width": int(w),
+                    "height": int(h),
+                    "pixel_format": "rgb",
+                    "rfilter": {"type": "box"},  # radiometry: no negative/overlapping lobes
+                },
+            },
+            "light": {
+                "type": "point",
+                "position": [0.0, 0.0, 1.0],
+                "intensity": _rgb(scene.light.intensity_W_sr),
+            },
+            "sample": {
+                "type": "rectangle",  # one-sided, normal +z, default extent [-1, 1]²
+                "to_world": T().scale([half, half, 1.0]),
+                "bsdf": material_dict(scene.material),
+            },
+        }
+        self._scene = mi.load_dict(desc)
+        self._params = mi.traverse(self._scene)
+        self._bsdf = self._scene.shapes()[0].bsdf()
+        self.intrinsics = camera_intrinsics(scene)
+
+    def render(
+        self,
+        light_pos_m,
+        camera_pos_m,
+        camera_target_m=(0.0, 0.0, 0.0),
+        intensity_scale: float = 1.0,
+        seed: int = 0,
+    ) -> np.ndarray:
+        """Radiance image (H, W, 3) float32 in W m⁻² sr⁻¹ for one light/camera pose.
+
+        ``intensity_scale`` multiplies the light's radiant intensity; radiance is linear in it,
+        so it is applied to the image (exact, and no parameter update is needed).
+        """
+        mi = self._mi
+        p = self._params
+        p["light.position"] = mi.Point3f(*[float(v) for v in light_pos_m])
+        up = look_at_up(camera_pos_m, camera_target_m)
+        tw = mi.ScalarTransform4f().look_at(
+            origin=[float(v) for v in camera_pos_m],
+            target=[float(v) for v in camera_target_m],
+            up=[float(v) for v in up],
+        )
+        p["sensor.to_world"] = mi.Transform4f(tw) if hasattr(mi, "Transform4f") else tw
+        p.update()
+        img = mi.render(self._scene, spp=self.spp, seed=seed)
+        out = np.asarray(img, dtype=np.float32)
+        if intensity_scale != 1.0:
+            out = out * np.float32(intensity_scale)
+        return out
+
+    def pixel_rays(self, camera_pos_m, camera_target_m=(0.0, 0.0, 0.0)):
+        """World-space ray (origin, unit directions (H, W, 3)) through every pixel centre."""
+        k = self.intrinsics
+        u = np.arange(k["width"], dtype=float)
+        v = np.arange(k["height"], dtype=float)
+        uu, vv = np.meshgrid(u, v)
+        d_cam = np.stack(
+            [(uu - k["cx"]) / k["fx"], (vv - k["cy"]) / k["fy"], np.ones_like(uu)], axis=-1
+        )
+        r, _ = world_to_camera_cv(camera_pos_m, camera_target_m)
+        d = d_cam @ r  # R^T applied to row vectors: camera → world
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        return np.asarray(camera_pos_m, float), d
+
+    def pixel_geometry(self, light_pos_m, camera_pos_m, camera_target_m=(0.0, 0.0, 0.0)) -> dict:
+        """Exact geometry of every pixel centre's view of the sample plane (for truth and tests).
+
+        Returns a dict of arrays: ``point_m`` (H, W, 3) where the pixel ray meets z = 0,
+        ``wi``/``wo`` (H, W, 3) unit directions to the light / camera, ``r_light_m`` (H, W)
+        distance to the light, and ``on_sample`` (H, W) bool (hit inside the square sample,
+        in front of the camera, and with the light above the surface).
+        """
+        origin, dirs = self.pixel_rays(camera_pos_m, camera_target_m)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -origin[2] / dirs[..., 2]
+        p = origin + t[..., None] * dirs
+        to_light = np.asarray(light_pos_m, float) - p
+        r_light = np.linalg.norm(to_light, axis=-1)
+        wi = to_light / r_light[..., None]
+        wo = -dirs
+        half = self.scene.sample.size_m / 2.0
+        on = (
+            np.isfinite(t)
+            & (t > 0)
+            & np.all(np.abs(p[..., :2]) <= half, axis=-1)
+            & (wi[..., 2] > 0)
+            & (wo[..., 2] > 0)
+        )
+        return {"point_m": p, "wi": wi, "wo": wo, "r_light_m": r_light, "on_sample": on}
+
+    def truth_bsdf(self, wi, wo) -> np.ndarray:
+        """Ground-truth f_r (N, 3) in sr⁻¹ from Mitsuba's own BSDF of the loaded material.
+
+        ``wi`` points to the light, ``wo`` to the camera (sample frame, unit vectors (N, 3)).
+        Mitsuba's ``bsdf.eval(ctx, si, w)`` returns f_r(si.wi, w)·cos θ_w; the renderer calls it
+        with si.wi = towards the camera and w = towards the light, so we do the same and divide
+        by cos θ_i. Below the horizon (either cosine ≤ 0) f_r = 0.
+        """
+        mi = self._mi
+        wi = np.atleast_2d(np.asarray(wi, float))
+        wo = np.atleast_2d(np.asarray(wo, float))
+        n = wi.shape[0]
+        if self.variant.startswith("scalar"):
+            out = np.zeros((n, 3))
+            for j in range(n):
+                out[j] = self._eval_one(wi[j], wo[j])
+        else:
+            si = mi.SurfaceInteraction3f()
+            si.p = mi.Point3f(0.0, 0.0, 0.0)
+            si.n = mi.Normal3f(0.0, 0.0, 1.0)
+            si.sh_frame = mi.Frame3f(
+                mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0)
+            )
+            si.uv = mi.Point2f(0.5, 0.5)
+            si.wi = mi.Vector3f(wo[:, 0], wo[:, 1], wo[:, 2])
+            ctx = mi.BSDFContext()
+            val = self._bsdf.eval(ctx, si, mi.Vector3f(wi[:, 0], wi[:, 1], wi[:, 2]))
+            out = np.stack([np.asarray(val[c], float) for c in range(3)], axis=-1)
+            out = np.broadcast_to(out, (n, 3)).copy()
+        cos_i = wi[:, 2]
+        valid = (cos_i > 0) & (wo[:, 2] > 0)
+        f = np.zeros((n, 3))
+        f[valid] = out[valid] / cos_i[valid, None]
+        return f
+
+    def _eval_one(self, wi, wo):
+        mi = self._mi
+        si = mi.SurfaceInteraction3f()
+        si.p = mi.Point3f(0.0, 0.0, 0.0)
+        si.n = mi.Normal3f(0.0, 0.0, 1.0)
+        si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
+        si.uv = mi.Point2f(0.5, 0.5)
+        si.wi = mi.Vector3f(*wo)
+        val = self._bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*wi))
+        return np.array([val[0], val[1], val[2]], float)

@@ -1,0 +1,111 @@
+"""The command line: contracts (names, --help, --version) and one-line errors for bad input."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+GONIO = [sys.executable, "-m", "gonio.cli"]
+SUBCOMMANDS = ["demo", "acquire", "calibrate", "calibrate-camera", "fit", "report", "models"]
+
+
+def run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([*GONIO, *args], capture_output=True, text=True, cwd=cwd, timeout=300)
+
+
+def assert_one_line_error(res: subprocess.CompletedProcess) -> str:
+    assert res.returncode != 0
+    assert "Traceback" not in res.stderr + res.stdout
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, res.stderr
+    return lines[0]
+
+
+def test_version() -> None:
+    res = run("--version")
+    assert res.returncode == 0 and res.stdout.startswith("gonio ")
+
+
+@pytest.mark.parametrize("cmd", SUBCOMMANDS)
+def test_every_subcommand_has_help(cmd: str) -> None:
+    res = run(cmd, "--help")
+    assert res.returncode == 0, res.stderr
+    assert "Usage" in res.stdout
+
+
+def test_fit_missing_file(tmp_path: Path) -> None:
+    line = assert_one_line_error(run("fit", str(tmp_path / "nope.parquet")))
+    assert "nope.parquet" in line and "no such file" in line
+
+
+def test_fit_not_parquet(tmp_path: Path) -> None:
+    p = tmp_path / "notes.parquet"
+    p.write_text("theta_i,f\n0.1,0.3\n")
+    line = assert_one_line_error(run("fit", str(p)))
+    assert "not a Parquet samples table" in line
+
+
+def test_fit_parquet_without_required_columns(tmp_path: Path) -> None:
+    p = tmp_path / "other.parquet"
+    pq.write_table(pa.table({"x": [1.0, 2.0], "y": [3.0, 4.0]}), p)
+    line = assert_one_line_error(run("fit", str(p)))
+    assert "missing column" in line and "theta_i" in line
+
+
+def _samples(path: Path, f: np.ndarray) -> Path:
+    n = f.size
+    pq.write_table(
+        pa.table(
+            {
+                "theta_i": np.full(n, 0.3),
+                "phi_i": np.zeros(n),
+                "theta_o": np.linspace(0.1, 1.0, n),
+                "phi_o": np.full(n, np.pi),
+                "channel": ["R"] * n,
+                "f": f,
+                "sigma": np.full(n, 0.01),
+            }
+        ),
+        path,
+    )
+    return path
+
+
+def test_fit_empty_table(tmp_path: Path) -> None:
+    line = assert_one_line_error(run("fit", str(_samples(tmp_path / "e.parquet", np.array([])))))
+    assert "empty" in line
+
+
+def test_fit_all_nan(tmp_path: Path) -> None:
+    p = _samples(tmp_path / "nan.parquet", np.full(5, np.nan))
+    line = assert_one_line_error(run("fit", str(p)))
+    assert "NaN" in line
+
+
+def test_fit_unknown_model(tmp_path: Path) -> None:
+    p = _samples(tmp_path / "ok.parquet", np.full(5, 0.1))
+    line = assert_one_line_error(run("fit", str(p), "--model", "cook-torrance-xyz"))
+    assert "unknown model" in line and "lambert" in line
+
+
+def test_acquire_bad_config_is_one_line(tmp_path: Path) -> None:
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "x"\nbogus = 1\n')
+    line = assert_one_line_error(
+        run("acquire", "--rig", str(rig), "--plan", "nope.toml", "--out", str(tmp_path / "r"))
+    )
+    assert "rig.toml" in line
+    assert not (tmp_path / "r").exists()  # nothing half-written
+
+
+def test_models_lists_parameters() -> None:
+    res = run("models")
+    assert res.returncode == 0
+    for name in ("lambert", "torrance-sparrow"):
+        assert name in res.stdout
