@@ -77,8 +77,9 @@ class LightConfig(_Strict):
     url: str = Field(description="serial device, or lightsim://NAME for the emulator")
     level: float = Field(1.0, gt=0, le=1, description="relative intensity used for the run")
     intensity_W_sr: tuple[float, float, float] | None = Field(
-        None, description="radiant intensity per channel (R, G, B) at level 1, W/sr, from the "
-        "source's calibration certificate; without it results are relative"
+        None,
+        description="radiant intensity per channel (R, G, B) at level 1, W/sr, from the "
+        "source's calibration certificate; without it results are relative",
     )
     warmup_s: float = Field(0.0, ge=0, le=3600)
 
@@ -198,7 +199,9 @@ def format_validation_error(path: Path | str, err: ValidationError) -> str:
     elif e["type"] == "missing":
         msg = "required key is missing"
     got = e.get("input")
-    tail = f" (got {got!r})" if e["type"] not in ("missing", "extra_forbidden") and _short(got) else ""
+    tail = (
+        f" (got {got!r})" if e["type"] not in ("missing", "extra_forbidden") and _short(got) else ""
+    )
     return f"{path}: {loc}: {msg}{tail}"
 
 

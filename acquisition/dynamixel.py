@@ -42,6 +42,7 @@ from dynamixel_sdk import (
 )
 
 from acquisition.clock import Clock, SystemClock
+from acquisition.motion import trapezoid_time_s
 from acquisition.protocols import AxisTimeout, DeviceFault
 
 __all__ = [
@@ -598,6 +599,8 @@ class DynamixelAxis:
         self.tolerance_ticks = tolerance_ticks
         self.poll_s = poll_s
         self._goal_ticks: int | None = None
+        self._last_ticks: int | None = None  # last Present Position seen (for move ETAs)
+        self._eta: float | None = None  # clock time the current move should end
         try:
             self.model_number = bus.ping(servo_id)
         except DeviceFault as exc:
@@ -606,6 +609,11 @@ class DynamixelAxis:
             bus.write(servo_id, ADDR["profile_acceleration"], 4, profile_acceleration)
         if profile_velocity is not None:
             bus.write(servo_id, ADDR["profile_velocity"], 4, profile_velocity)
+        else:
+            profile_velocity = bus.read(servo_id, ADDR["profile_velocity"], 4)
+        if profile_acceleration is None:
+            profile_acceleration = bus.read(servo_id, ADDR["profile_acceleration"], 4)
+        self.profile_velocity, self.profile_acceleration = profile_velocity, profile_acceleration
 
     # -- conversions ----------------------------------------------------------------------
     def angle_from_ticks(self, ticks: float) -> float:
@@ -631,23 +639,56 @@ class DynamixelAxis:
             )
         return self.ticks_from_angle(angle_rad)
 
+    def move_duration_s(self, distance_ticks: float) -> float | None:
+        """Rest-to-rest time of the servo's profile over `distance_ticks` (e-Manual units:
+        v = PV·0.229·4096/60 tick/s, a = PA·214.577·4096/3600 tick/s², PA = 0 → a = ∞):
+        trapezoid d/v + v/a when d ≥ v²/a, else triangle 2√(d/a). None when PV = 0 (the
+        servo then runs at its Velocity Limit, not known here)."""
+        if not self.profile_velocity:
+            return None
+        v = self.profile_velocity * 0.229 * TICKS_PER_REV / 60.0
+        a = (
+            math.inf
+            if self.profile_acceleration == 0
+            else self.profile_acceleration * 214.577 * TICKS_PER_REV / 3600.0
+        )
+        return float(trapezoid_time_s(distance_ticks, v, a))
+
+    def _started(self, goal_ticks: int) -> None:
+        """Record a new goal and, when the start is known, when the move should be over."""
+        self._eta = None
+        if self._last_ticks is not None and self._goal_ticks != goal_ticks:
+            duration = self.move_duration_s(goal_ticks - self._last_ticks)
+            if duration is not None:
+                self._eta = self.bus.clock.now() + duration
+        self._goal_ticks = goal_ticks
+
     # -- Axis protocol --------------------------------------------------------------------
     def move_to(self, angle_rad: float) -> None:
         ticks = self.check_target(angle_rad)
         self.bus.write(self.servo_id, ADDR["goal_position"], 4, ticks)
-        self._goal_ticks = ticks
+        self._started(ticks)
 
     def position(self) -> float:
-        return self.angle_from_ticks(self.bus.read(self.servo_id, ADDR["present_position"], 4))
+        self._last_ticks = self.bus.read(self.servo_id, ADDR["present_position"], 4)
+        return self.angle_from_ticks(self._last_ticks)
 
     def _poll(self) -> tuple[bool, int]:
         # one READ of Moving(122)..Present Position(132..135)
         raw = self.bus.read_bytes(self.servo_id, ADDR["moving"], 14)
-        return bool(raw[0]), to_signed(int.from_bytes(raw[10:14], "little"), 4)
+        self._last_ticks = to_signed(int.from_bytes(raw[10:14], "little"), 4)
+        return bool(raw[0]), self._last_ticks
 
     def wait(self, timeout_s: float) -> None:
+        """Sleep (on the clock) until the move's expected end, then poll Moving and Present
+        Position every `poll_s` until arrived within `tolerance_ticks`, or AxisTimeout. The
+        expected end comes from the profile and the last known position, so a move costs one
+        or two status reads instead of one per poll."""
         clock = self.bus.clock
         t0 = clock.now()
+        if self._eta is not None:
+            clock.sleep(min(self._eta - t0, timeout_s))
+            self._eta = None
         while True:
             moving, ticks = self._poll()
             near = self._goal_ticks is None or abs(ticks - self._goal_ticks) <= self.tolerance_ticks
@@ -668,6 +709,7 @@ class DynamixelAxis:
 
     def torque(self, enabled: bool) -> None:
         self.bus.torque(self.servo_id, enabled)
+        self._eta = None
         if not enabled:
             self._goal_ticks = None
 
@@ -676,19 +718,25 @@ class DynamixelAxis:
         ticks = self.bus.read(self.servo_id, ADDR["present_position"], 4, check_alert=False)
         if self.bus.read(self.servo_id, ADDR["torque_enable"], 1, check_alert=False):
             self.bus.write(self.servo_id, ADDR["goal_position"], 4, ticks, check_alert=False)
-        self._goal_ticks = ticks
+        self._goal_ticks, self._last_ticks, self._eta = ticks, ticks, None
 
     def status(self) -> dict[str, Any]:
-        b = self.bus
-        hw = b.read(self.servo_id, ADDR["hardware_error_status"], 1, check_alert=False)
+        """Temperature, input voltage and Hardware Error Status, in one READ of 70..146 (gaps
+        in the control table read as 0). Never triggers alert handling: it is what a safe
+        stop records."""
+        first = ADDR["hardware_error_status"]
+        last = ADDR["present_temperature"]
+        raw = self.bus.read_bytes(self.servo_id, first, last - first + 1, check_alert=False)
+
+        def reg(addr: int, size: int) -> int:
+            return int.from_bytes(raw[addr - first : addr - first + size], "little")
+
+        hw = reg(ADDR["hardware_error_status"], 1)
         return {
             "servo_id": self.servo_id,
             "model": MODEL_NAMES.get(self.model_number, str(self.model_number)),
-            "temperature_C": float(
-                b.read(self.servo_id, ADDR["present_temperature"], 1, check_alert=False)
-            ),
-            "voltage_V": b.read(self.servo_id, ADDR["present_input_voltage"], 2, check_alert=False)
-            / 10.0,
+            "temperature_C": float(reg(ADDR["present_temperature"], 1)),
+            "voltage_V": reg(ADDR["present_input_voltage"], 2) / 10.0,
             "hardware_error": hw,
             "hardware_error_names": decode_hardware_error(hw),
         }
@@ -709,7 +757,7 @@ def move_together(axes: Sequence[DynamixelAxis], angles_rad: Sequence[float]) ->
     for bus, idx in _by_bus(axes).values():
         bus.sync_write(ADDR["goal_position"], 4, {axes[k].servo_id: ticks[k] for k in idx})
         for k in idx:
-            axes[k]._goal_ticks = ticks[k]
+            axes[k]._started(ticks[k])
 
 
 def read_positions(axes: Sequence[DynamixelAxis]) -> list[float]:
@@ -718,5 +766,6 @@ def read_positions(axes: Sequence[DynamixelAxis]) -> list[float]:
     for bus, idx in _by_bus(axes).values():
         values = bus.sync_read(ADDR["present_position"], 4, [axes[k].servo_id for k in idx])
         for k in idx:
-            out[k] = axes[k].angle_from_ticks(values[axes[k].servo_id])
+            axes[k]._last_ticks = values[axes[k].servo_id]
+            out[k] = axes[k].angle_from_ticks(axes[k]._last_ticks)
     return out

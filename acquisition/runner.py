@@ -66,8 +66,12 @@ def _safe_stop(rig: Rig, store: RunStore, reason: str, park: bool = True) -> Non
     """Best effort, each step independent: one failing must not prevent the others."""
     steps: list[tuple[str, Callable[[], None]]] = []
     if park:
-        steps.append(("park", lambda: (rig.move(park_targets(rig.config)),
-                                       rig.wait(rig.config.move_timeout_s))))
+        steps.append(
+            (
+                "park",
+                lambda: (rig.move(park_targets(rig.config)), rig.wait(rig.config.move_timeout_s)),
+            )
+        )
     steps += [("light off", rig.light.off), ("torque off", lambda: rig.torque(False))]
     for name, step in steps:
         try:
@@ -124,8 +128,11 @@ def run_acquisition(
             for b, exposure_s in enumerate(exposures):
                 if (planned.index, b) in done:
                     continue
-                # The pending row goes in first: if we die after the frame lands, resume adopts it.
+                if stop.reason:  # stop between frames, not only between poses
+                    break
                 frame = rig.camera.capture(exposure_s)
+                # The pending row goes in before the frame is written: if we die after the
+                # frame lands but before the row is marked done, resume adopts the frame.
                 cid = store.begin_capture(
                     pose_index=planned.index,
                     bracket_index=b,

@@ -217,7 +217,8 @@ class RunStore:
     def event(self, kind: str, message: str) -> None:
         with self._db:
             self._db.execute(
-                "INSERT INTO events (at, kind, message) VALUES (?, ?, ?)", (now_iso(), kind, message)
+                "INSERT INTO events (at, kind, message) VALUES (?, ?, ?)",
+                (now_iso(), kind, message),
             )
 
     def events(self) -> list[tuple[str, str, str]]:
@@ -354,7 +355,9 @@ class RunStore:
             )
 
     def count(self, status: str = "done") -> int:
-        (n,) = self._db.execute("SELECT COUNT(*) FROM captures WHERE status = ?", (status,)).fetchone()
+        (n,) = self._db.execute(
+            "SELECT COUNT(*) FROM captures WHERE status = ?", (status,)
+        ).fetchone()
         return int(n)
 
     def verify(self) -> list[str]:

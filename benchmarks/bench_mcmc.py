@@ -35,13 +35,15 @@ def synthetic_table(n: int, rng: np.random.Generator, rel_noise: float = 0.03) -
     for c, kd, ks in zip("RGB", TRUTH["kd"], TRUTH["ks"], strict=True):
         ti = rng.uniform(0.05, 1.3, n)
         to = rng.uniform(0.05, 1.3, n)
-        po = np.where(np.arange(n) % 2 == 0, np.pi + rng.uniform(-0.3, 0.3, n),
-                      rng.uniform(0, 2 * np.pi, n))
+        po = np.where(
+            np.arange(n) % 2 == 0, np.pi + rng.uniform(-0.3, 0.3, n), rng.uniform(0, 2 * np.pi, n)
+        )
         wi, wo = spherical_to_vector(ti, np.zeros(n)), spherical_to_vector(to, po)
         f = model.evaluate({"kd": kd, "ks": ks, "m": TRUTH["m"], "ior": TRUTH["ior"]}, wi, wo)
         sig = rel_noise * f + 1e-3
-        parts.append((ti, np.zeros(n), to, po, np.full(n, c), f + sig * rng.standard_normal(n),
-                      sig))
+        parts.append(
+            (ti, np.zeros(n), to, po, np.full(n, c), f + sig * rng.standard_normal(n), sig)
+        )
     cols = [np.concatenate([p[i] for p in parts]) for i in range(7)]
     return SampleTable(*cols, np.zeros(cols[0].size, np.int32))
 
@@ -90,14 +92,31 @@ def main(argv: list[str] | None = None) -> dict:
     x0 = lsq.x.copy()
     x0[space.index("discrepancy")] = np.log(2e-4)
     lo, hi = space.bounds
-    res = run_mcmc(lik.log_prob, x0, bounds=(lo, hi), walkers=args.walkers, max_steps=100_000,
-                   rng=args.seed, scale=scale, target_ess=args.target_ess)
+    res = run_mcmc(
+        lik.log_prob,
+        x0,
+        bounds=(lo, hi),
+        walkers=args.walkers,
+        max_steps=100_000,
+        rng=args.seed,
+        scale=scale,
+        target_ess=args.target_ess,
+    )
     per_step_vec = res.wall_time_s / res.iterations
 
     base = plain_log_prob(lik)
     t0 = time.perf_counter()
-    run_mcmc(base, x0, bounds=(lo, hi), walkers=args.walkers, max_steps=args.baseline_steps,
-             rng=args.seed, scale=scale, vectorize=False, chunk=args.baseline_steps)
+    run_mcmc(
+        base,
+        x0,
+        bounds=(lo, hi),
+        walkers=args.walkers,
+        max_steps=args.baseline_steps,
+        rng=args.seed,
+        scale=scale,
+        vectorize=False,
+        chunk=args.baseline_steps,
+    )
     per_step_base = (time.perf_counter() - t0) / args.baseline_steps
     out = {
         "rows": len(table),

@@ -57,7 +57,9 @@ class CameraRadiometry:
         """W m⁻² sr⁻¹ per (electron/s): the camera irradiance equation inverted."""
         photon_j = PLANCK_J_S * LIGHT_SPEED_M_S / self.wavelength_m
         return (
-            photon_j * 4.0 * self.f_number**2
+            photon_j
+            * 4.0
+            * self.f_number**2
             / (math.pi * self.quantum_efficiency * self.pixel_pitch_m**2)
         )
 

@@ -64,8 +64,14 @@ def _channels_of(decoded, radiometry: CameraRadiometry):
     if dn.ndim == 2:
         return ["Y"], [dn], [sat], 1, 0.0, [1]
     names = ["R", "G", "B"][: dn.shape[2]]
-    return names, [dn[..., c] for c in range(dn.shape[2])], [sat[..., c] for c in range(
-        dn.shape[2])], 1, 0.0, [1] * dn.shape[2]
+    return (
+        names,
+        [dn[..., c] for c in range(dn.shape[2])],
+        [sat[..., c] for c in range(dn.shape[2])],
+        1,
+        0.0,
+        [1] * dn.shape[2],
+    )
 
 
 def _block_mean(a: np.ndarray, b: int) -> np.ndarray:
@@ -117,8 +123,12 @@ def reduce_run(
         by_pose[rec.pose_index].append(rec)
     if not by_pose:
         raise CalibrationError(f"{run_dir}: the run has no completed captures")
-    missing = [r.frame_path for recs in by_pose.values() for r in recs
-               if not (run_dir / r.frame_path).exists()]
+    missing = [
+        r.frame_path
+        for recs in by_pose.values()
+        for r in recs
+        if not (run_dir / r.frame_path).exists()
+    ]
     if missing:
         raise CalibrationError(
             f"{run_dir}: {len(missing)} frame(s) listed in the manifest are missing, "
@@ -136,8 +146,18 @@ def reduce_run(
         task = bar.add_task("calibrating", total=len(iterator))
     try:
         for pose_index, recs in iterator:
-            _reduce_pose(pose_index, recs, run_dir, radiometry, intr, kin, intensity,
-                         sample_size_m, options, cols)
+            _reduce_pose(
+                pose_index,
+                recs,
+                run_dir,
+                radiometry,
+                intr,
+                kin,
+                intensity,
+                sample_size_m,
+                options,
+                cols,
+            )
             if bar is not None:
                 bar.advance(task)
     finally:
@@ -177,8 +197,9 @@ def reduce_run(
     return table
 
 
-def _reduce_pose(pose_index, recs, run_dir, radiometry, intr, kin, intensity, sample_size_m,
-                 options, cols) -> None:
+def _reduce_pose(
+    pose_index, recs, run_dir, radiometry, intr, kin, intensity, sample_size_m, options, cols
+) -> None:
     decoded = [decode_frame(run_dir / r.frame_path) for r in recs]
     exposures = [float(r.exposure_s) for r in recs]
     per_bracket = [_channels_of(d, radiometry) for d in decoded]
@@ -197,15 +218,21 @@ def _reduce_pose(pose_index, recs, run_dir, radiometry, intr, kin, intensity, sa
     if options.mode == "center" and b > 1:
         # Keep the pixel nearest each region's centre; then treat it as a 1×1 region.
         c = b // 2
-        geo = type(geo)(*(a[c::b, c::b][: geo.on_sample.shape[0] // b,
-                                         : geo.on_sample.shape[1] // b]
-                          for a in (geo.point_m, geo.wi, geo.wo, geo.light_distance_m,
-                                    geo.on_sample)))
+        geo = type(geo)(
+            *(
+                a[c::b, c::b][: geo.on_sample.shape[0] // b, : geo.on_sample.shape[1] // b]
+                for a in (geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
+            )
+        )
         per_bracket = [
-            (names_, [p[c::b, c::b][: geo.on_sample.shape[0], : geo.on_sample.shape[1]]
-                      for p in planes], [m[c::b, c::b][: geo.on_sample.shape[0],
-                                                       : geo.on_sample.shape[1]] for m in sats],
-             step_ * b, offset_ + c * step_, sites_)
+            (
+                names_,
+                [p[c::b, c::b][: geo.on_sample.shape[0], : geo.on_sample.shape[1]] for p in planes],
+                [m[c::b, c::b][: geo.on_sample.shape[0], : geo.on_sample.shape[1]] for m in sats],
+                step_ * b,
+                offset_ + c * step_,
+                sites_,
+            )
             for names_, planes, sats, step_, offset_, sites_ in per_bracket
         ]
         step, offset = per_bracket[0][3], per_bracket[0][4]
@@ -234,8 +261,11 @@ def _reduce_pose(pose_index, recs, run_dir, radiometry, intr, kin, intensity, sa
             electrons, exposures, sat, math.sqrt(read_var * n_sites)
         )
         scale = k_rad / n_sites  # summed greens count twice the photosite area
-        i_c = float(intensity[min(c, len(intensity) - 1)]) if name != "Y" else float(
-            np.mean(intensity))
+        i_c = (
+            float(intensity[min(c, len(intensity) - 1)])
+            if name != "Y"
+            else float(np.mean(intensity))
+        )
         e_surf = e_surf_geom * i_c
         with np.errstate(divide="ignore", invalid="ignore"):
             f_px = flux * scale / e_surf

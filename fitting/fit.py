@@ -23,7 +23,7 @@ import numpy as np
 from fitting import models
 from fitting.likelihood import Likelihood
 from fitting.lsq import fit_least_squares
-from fitting.mcmc import run_mcmc
+from fitting.mcmc import rhat_across, run_mcmc
 from fitting.priors import DISCREPANCY, ParameterSpace, PriorsConfig, albedo_prior, load_priors
 from fitting.result import FitResult
 from fitting.samples import SampleTable
@@ -31,9 +31,7 @@ from fitting.samples import SampleTable
 __all__ = ["fit_samples", "summarise"]
 
 
-def summarise(
-    space: ParameterSpace, draws: np.ndarray, x_map: np.ndarray
-) -> dict[str, dict]:
+def summarise(space: ParameterSpace, draws: np.ndarray, x_map: np.ndarray) -> dict[str, dict]:
     """Per-parameter summary in natural units from internal-space draws (S, D)."""
     nat = space.to_natural(draws)
     nat_map = space.to_natural(x_map)
@@ -92,11 +90,18 @@ def fit_samples(
     loss: str | None = None,
     n_starts: int = 8,
     progress: bool = False,
+    ensembles: int = 1,
+    moves: str = "de",
+    target_ess: float | None = None,
 ) -> FitResult:
     """Fit ``model_name`` to ``table``; write fit-<model>.json (+ .h5 chain) into ``out_dir``.
 
     ``shared=None`` shares m and the Fresnel parameters; kd, ks are per channel. ``fix`` holds
-    parameters at natural values (bare or per-channel names). ``steps`` is the MCMC maximum.
+    parameters at natural values (bare or per-channel names). ``steps`` is the MCMC maximum
+    per ensemble. ``ensembles`` ≥ 2 runs independent ensembles (seeds drawn from ``seed``,
+    groups ``mcmc``, ``mcmc_1``… in the .h5), pools their chains, and reports R̂ across them
+    (walker-mean traces, one per ensemble); with one ensemble R̂ is the split-walker R̂.
+    τ, ESS and acceptance are then those of the first ensemble, ESS × ensembles.
     """
     t0 = time.perf_counter()
     options = dict(options or {})
@@ -130,12 +135,37 @@ def fit_samples(
         if lsq.cov is not None:
             scale = np.sqrt(np.clip(np.diag(lsq.cov), 0, None))
             scale = np.where(scale > 0, scale, 1e-3)
-        res = run_mcmc(
-            lik.log_prob, x_lsq, bounds=(lo, hi), walkers=walkers, max_steps=steps,
-            time_budget_s=time_budget_s, rng=rng, scale=scale,
-            backend_path=(out_dir / f"fit-{model_name}.h5") if out_dir is not None else None,
-            progress=progress,
-        )
+        runs = []
+        for e in range(max(1, int(ensembles))):
+            h5 = None
+            if out_dir is not None:
+                h5 = out_dir / f"fit-{model_name}.h5"
+            runs.append(
+                run_mcmc(
+                    lik.log_prob,
+                    x_lsq,
+                    bounds=(lo, hi),
+                    walkers=walkers,
+                    max_steps=steps,
+                    time_budget_s=time_budget_s,
+                    rng=rng,
+                    scale=scale,
+                    backend_path=h5,
+                    backend_name="mcmc" if e == 0 else f"mcmc_{e}",
+                    progress=progress,
+                    moves=moves,
+                    target_ess=target_ess,
+                )
+            )
+        res = runs[0]
+        if len(runs) > 1:
+            n_keep = min(r.chain.shape[0] for r in runs)
+            res.chain = np.concatenate([r.chain[-n_keep:] for r in runs], axis=1)
+            res.log_prob = np.concatenate([r.log_prob[-n_keep:] for r in runs], axis=1)
+            res.rhat = rhat_across([r.chain for r in runs])
+            res.ess = np.sum([r.ess for r in runs], axis=0)
+            res.converged = all(r.converged for r in runs)
+            res.stop_reason = ",".join(dict.fromkeys(r.stop_reason for r in runs))
         draws = res.flat
         flat_lp = res.log_prob.reshape(-1)
         lp_lsq = lik.log_prob(x_lsq)
@@ -162,7 +192,11 @@ def fit_samples(
         else:
             draws = np.repeat(x_lsq[None, :], 2, axis=0)
         diagnostics = {
-            "tau": {}, "ess": {}, "acceptance": None, "converged": False, "rhat": {},
+            "tau": {},
+            "ess": {},
+            "acceptance": None,
+            "converged": False,
+            "rhat": {},
             "stop_reason": "no_mcmc",
         }
     k = space.ndim
@@ -176,7 +210,7 @@ def fit_samples(
         "dof": dof,
         "chi2_red": chi2 / dof if dof > 0 else float("nan"),
         "aic": 2 * k - 2 * ll,
-        "bic": k * np.log(n) - 2 * ll,
+        "bic": float(k * np.log(n) - 2 * ll),
         "n": n,
     }
     result = FitResult(

@@ -39,6 +39,7 @@ __all__ = [
     "torrance_sparrow",
     "torrance_sparrow_per_sample",
     "lobe_geometry",
+    "lobe_parameter_table",
     "lobe",
 ]
 
@@ -84,7 +85,7 @@ _POW2_NEG = np.ldexp(1.0, -np.arange(1090)).astype(np.float64)  # 2^−k, 0 beyo
 _EXP_C = tuple(1.0 / math.factorial(i) for i in range(14))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _exp_neg(x):
     k = math.floor(x * _INV_LN2 + 0.5)
     r = (k * _LN2_HI - x) + k * _LN2_LO
@@ -114,7 +115,7 @@ def exp_neg(x):
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _logaddexp(a, b):
     if a == _NINF:
         return b
@@ -125,7 +126,7 @@ def _logaddexp(a, b):
     return b + math.log1p(math.exp(a - b))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _geometry_row(wi, wo, geo, j):
     ci = wi[j, 2]
     co = wo[j, 2]
@@ -188,11 +189,12 @@ def microfacet_geometry(wi, wo):
     return _microfacet_geometry_ser(wi, wo)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _c_lambda(c, s, m, dist):
     """cos θ · Λ(θ), exact Smith (finite at the horizon); see fitting.microfacet._c_lambda."""
     if dist == DIST_GGX:
-        return 0.5 * (math.sqrt(c * c + m * m * s * s) - c)
+        q = math.sqrt(c * c + m * m * s * s) + c  # (R − c)/2 = α²s²/(2(R + c))
+        return 0.5 * m * m * s * s / q if q > 0.0 else 0.0
     if s == 0.0:
         return 0.0
     a = c / (m * s)
@@ -201,7 +203,7 @@ def _c_lambda(c, s, m, dist):
     return m * s * 0.5 * (math.exp(-a * a) * _INV_SQRT_PI - a * math.erfc(a))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _g1_over_cos(c, s, m, dist, rational):
     if rational and dist == DIST_BECKMANN:
         a = c / (m * s) if s > 0.0 else np.inf
@@ -212,7 +214,7 @@ def _g1_over_cos(c, s, m, dist, rational):
     return 1.0 / (c + _c_lambda(c, s, m, dist))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _smith_over_4cc(ci, co, si, so, m, dist, shadow):
     """Smith G₂/(4 cos θ_i cos θ_o) in a form with a finite limit as either cosine → 0."""
     if shadow == SHADOW_SMITH_CORRELATED:
@@ -225,7 +227,7 @@ def _smith_over_4cc(ci, co, si, so, m, dist, shadow):
     )
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _fresnel(c, fresnel, p1, p2):
     if fresnel == FRESNEL_NONE:
         return 1.0
@@ -288,7 +290,7 @@ def ts_parameter_table(kd, ks, m, p1, p2, dist):
     return tab
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _ts_one(geo, j, pt, w, dist, shadow, fresnel, log_out):
     """f (or log f) for pair j and parameter row w of the tables."""
     if geo[_G_VALID, j] == 0.0:
@@ -333,7 +335,7 @@ def _ts_one(geo, j, pt, w, dist, shadow, fresnel, log_out):
     return _logaddexp(pt[w, _P_LKDPI], spec)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _stage_d(geo, j0, dbuf, im2, dn, dist):
     """D for a chunk, branch-free so that it vectorises (the branch on dist is loop-invariant)."""
     if dist == DIST_BECKMANN:
@@ -351,7 +353,7 @@ def _stage_d(geo, j0, dbuf, im2, dn, dist):
             dbuf[i] = r * r * dn
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _stage_f(geo, j0, fbuf, p1, p2, fresnel):
     """F(ω·h) for a chunk; TIR and the degenerate cases by selects, not branches."""
     if fresnel == FRESNEL_DIELECTRIC:
@@ -392,14 +394,67 @@ def _stage_f(geo, j0, fbuf, p1, p2, fresnel):
             fbuf[i] = 1.0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _stage_g(geo, j0, gbuf, m, dist, shadow):
-    """G/(4 cos θ_i cos θ_o) for a chunk."""
+    """G/(4 cos θ_i cos θ_o) for a chunk. The cheap shadowing forms get branch-free loops with
+    one division each (so they vectorise); exact Beckmann Smith needs libm's erfc per pair."""
+    size = gbuf.size
     if shadow == SHADOW_VCAVITY:
-        for i in range(gbuf.size):
+        for i in range(size):
             gbuf[i] = geo[_G_GV, j0 + i]
+    elif dist == DIST_GGX and shadow != SHADOW_SMITH_CORRELATED:
+        # G₁/cos = 2/(c + R), R = sqrt(c² + α² s²)  ⇒  G/(4 ci co) = 1/((ci + Ri)(co + Ro))
+        m2 = m * m
+        for i in range(size):
+            j = j0 + i
+            ci = geo[_G_CI, j]
+            co = geo[_G_CO, j]
+            si = geo[_G_SI, j]
+            so = geo[_G_SO, j]
+            ri = math.sqrt(ci * ci + m2 * si * si)
+            ro = math.sqrt(co * co + m2 * so * so)
+            den = (ci + ri) * (co + ro)
+            gbuf[i] = 1.0 / den if den > 0.0 else 0.0
+    elif dist == DIST_GGX:
+        # height-correlated: cos·Λ = (R − c)/2 = α² s²/(2(R + c)) (no cancellation)
+        m2 = m * m
+        for i in range(size):
+            j = j0 + i
+            ci = geo[_G_CI, j]
+            co = geo[_G_CO, j]
+            si = geo[_G_SI, j]
+            so = geo[_G_SO, j]
+            ri = math.sqrt(ci * ci + m2 * si * si)
+            ro = math.sqrt(co * co + m2 * so * so)
+            qi = ri + ci
+            qo = ro + co
+            li = 0.5 * m2 * si * si / qi if qi > 0.0 else 0.0
+            lo = 0.5 * m2 * so * so / qo if qo > 0.0 else 0.0
+            den = ci * co + (co * li + ci * lo)
+            gbuf[i] = 0.25 / den if den > 0.0 else 0.0
+    elif shadow == SHADOW_SMITH_RATIONAL:
+        # Walter's rational G₁ with u = m sin θ (a = c/u):  G₁/cos = (3.535u + 2.181c) /
+        # (u² + 2.276cu + 2.577c²) for c < 1.6u, else 1/c. Product of the two: one division.
+        for i in range(size):
+            j = j0 + i
+            ci = geo[_G_CI, j]
+            co = geo[_G_CO, j]
+            ui = m * geo[_G_SI, j]
+            uo = m * geo[_G_SO, j]
+            ni = 3.535 * ui + 2.181 * ci
+            di = ui * ui + 2.276 * ci * ui + 2.577 * ci * ci
+            no = 3.535 * uo + 2.181 * co
+            do = uo * uo + 2.276 * co * uo + 2.577 * co * co
+            if not ci < 1.6 * ui:
+                ni = 1.0
+                di = ci
+            if not co < 1.6 * uo:
+                no = 1.0
+                do = co
+            den = di * do
+            gbuf[i] = 0.25 * (ni * no) / den if den > 0.0 else 0.0
     else:
-        for i in range(gbuf.size):
+        for i in range(size):
             j = j0 + i
             if geo[_G_VALID, j] != 0.0:
                 gbuf[i] = _smith_over_4cc(
@@ -409,7 +464,7 @@ def _stage_g(geo, j0, gbuf, m, dist, shadow):
                 gbuf[i] = 0.0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _ts_block(geo, pt, dist, shadow, fresnel, log_out, out, b, n_chunks):
     n = out.shape[1]
     w = b // n_chunks
@@ -496,13 +551,14 @@ def torrance_sparrow_per_sample(geo, pt, dist, shadow, fresnel, log_out, out):
         _ts_per_sample_ser(geo, pt, dist, shadow, fresnel, log_out, out)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _lobe_row(wi, wo, kind, geo, j):
     ci = wi[j, 2]
     co = wo[j, 2]
     if not (ci > 0.0 and co > 0.0):
+        geo[1, j] = _NINF
         return
-    geo[j, 0] = 1.0
+    geo[0, j] = 1.0
     if kind == LOBE_BLINN_PHONG:
         sx = wi[j, 0] + wo[j, 0]
         sy = wi[j, 1] + wo[j, 1]
@@ -512,13 +568,12 @@ def _lobe_row(wi, wo, kind, geo, j):
         dot = wi[j, 0] * wo[j, 0] + wi[j, 1] * wo[j, 1] + ci * co
         base = 2.0 * (ci * co) - dot
     base = min(base, 1.0)
-    geo[j, 1] = max(base, 0.0)
-    geo[j, 2] = math.log(base) if base > 0.0 else _NINF
+    geo[1, j] = math.log(base) if base > 0.0 else _NINF
 
 
 @njit(parallel=True, cache=True)
 def _lobe_geometry_par(wi, wo, kind):
-    geo = np.zeros((wi.shape[0], 3))
+    geo = np.zeros((2, wi.shape[0]))
     for j in prange(wi.shape[0]):
         _lobe_row(wi, wo, kind, geo, j)
     return geo
@@ -526,21 +581,21 @@ def _lobe_geometry_par(wi, wo, kind):
 
 @njit(cache=True)
 def _lobe_geometry_ser(wi, wo, kind):
-    geo = np.zeros((wi.shape[0], 3))
+    geo = np.zeros((2, wi.shape[0]))
     for j in range(wi.shape[0]):
         _lobe_row(wi, wo, kind, geo, j)
     return geo
 
 
 def lobe_geometry(wi, wo, kind):
-    """Per-pair (valid, base, log base) of the Phong-family lobe: base = l̂·r̂ = 2 cos θ_i cos θ_o −
-    ω_i·ω_o (Phong, symmetric in ω_i, ω_o) or cos θ_h (Blinn-Phong), clamped to [0, 1]."""
+    """Per-pair table (2, N): valid, log base, with base = l̂·r̂ = 2 cos θ_i cos θ_o − ω_i·ω_o
+    (Phong; symmetric in ω_i, ω_o) or cos θ_h (Blinn-Phong), clamped to ≤ 1; log 0 = −inf."""
     if wi.shape[0] >= PARALLEL_MIN_WORK:
         return _lobe_geometry_par(wi, wo, kind)
     return _lobe_geometry_ser(wi, wo, kind)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _lobe_log_norm(n, kind):
     if kind == LOBE_PHONG:
         return 0.0
@@ -550,47 +605,73 @@ def _lobe_log_norm(n, kind):
     return math.log((n + 2.0) * (n + 4.0) / (8.0 * _PI * (math.pow(2.0, -0.5 * n) + n)))
 
 
-@njit(cache=True, inline="always")
-def _lobe_one(geo, kd, ks, nexp, kind, log_out, out, idx):
-    n = out.shape[1]
-    ckd = 1 if kd.shape[1] > 1 else 0
-    cks = 1 if ks.shape[1] > 1 else 0
-    cn = 1 if nexp.shape[1] > 1 else 0
-    w = idx // n
-    j = idx - w * n
-    if geo[j, 0] == 0.0:
-        out[w, j] = _NINF if log_out else 0.0
-        return
-    kdv = kd[w, j * ckd]
-    ksv = ks[w, j * cks]
-    nv = nexp[w, j * cn]
-    logb = geo[j, 2]
-    if geo[j, 1] > 0.0 and ksv > 0.0:
-        spec = math.log(ksv) + _lobe_log_norm(nv, kind) + nv * logb
-    else:
-        spec = _NINF
-    if log_out:
-        diff = math.log(kdv * _INV_PI) if kdv > 0.0 else _NINF
-        out[w, j] = _logaddexp(diff, spec)
-    else:
-        out[w, j] = kdv * _INV_PI + (math.exp(spec) if spec > _NINF else 0.0)
-
-
-@njit(parallel=True, cache=True)
-def _lobe_par(geo, kd, ks, nexp, kind, log_out, out):
-    for idx in prange(out.size):
-        _lobe_one(geo, kd, ks, nexp, kind, log_out, out, idx)
+@njit(cache=True)
+def lobe_parameter_table(kd, ks, nexp, kind):
+    """Rows (kd/π, log(kd/π), ks·N(n), log(ks·N(n)), n) per parameter set (1-D inputs)."""
+    tab = np.empty((kd.shape[0], 5))
+    for r in range(kd.shape[0]):
+        lnorm = _lobe_log_norm(nexp[r], kind)
+        tab[r, 0] = kd[r] * _INV_PI
+        tab[r, 1] = math.log(kd[r] * _INV_PI) if kd[r] > 0.0 else _NINF
+        tab[r, 2] = ks[r] * math.exp(lnorm)
+        tab[r, 3] = math.log(ks[r]) + lnorm if ks[r] > 0.0 else _NINF
+        tab[r, 4] = nexp[r]
+    return tab
 
 
 @njit(cache=True)
-def _lobe_ser(geo, kd, ks, nexp, kind, log_out, out):
-    for idx in range(out.size):
-        _lobe_one(geo, kd, ks, nexp, kind, log_out, out, idx)
+def _lobe_block(geo, pt, rs, cs, log_out, out, b, n_chunks):
+    """One (set, chunk) of f = kd/π + ks N(n) base^n with base^n = exp(n log base) (exact for n
+    up to 1e6, no overflow); parameter row r = w·rs + j·cs (per set: rs=1, cs=0)."""
+    n = out.shape[1]
+    w = b // n_chunks
+    j0 = (b - w * n_chunks) * _CHUNK
+    j1 = min(j0 + _CHUNK, n)
+    if cs == 0 and not log_out:  # the common case, branch-free so that it vectorises
+        kdpi = pt[w * rs, 0]
+        ksn = pt[w * rs, 2]
+        nexp = pt[w * rs, 4]
+        for j in range(j0, j1):
+            x = -nexp * geo[1, j]  # −n log base ≥ 0 (+inf where base = 0)
+            e = _exp_neg(min(x, 745.0))
+            v = kdpi + ksn * (e if x < _EXP_UNDERFLOW else 0.0)
+            out[w, j] = v if geo[0, j] != 0.0 else 0.0
+        return
+    for j in range(j0, j1):
+        r = w * rs + j * cs
+        x = -pt[r, 4] * geo[1, j]
+        e = _exp_neg(min(x, 745.0))
+        v = pt[r, 0] + pt[r, 2] * (e if x < _EXP_UNDERFLOW else 0.0)
+        if not log_out:
+            out[w, j] = v if geo[0, j] != 0.0 else 0.0
+        elif geo[0, j] == 0.0:
+            out[w, j] = _NINF
+        elif v > 1e-250:
+            out[w, j] = math.log(v)
+        else:
+            spec = pt[r, 3] - x if x < np.inf else _NINF
+            out[w, j] = _logaddexp(pt[r, 1], spec)
 
 
-def lobe(geo, kd, ks, nexp, kind, log_out, out):
-    """f = kd/π + ks · norm(n) · base^n, evaluated as exp(n log base) so n up to 1e6 is exact."""
+@njit(parallel=True, cache=True)
+def _lobe_par(geo, pt, rs, cs, log_out, out):
+    n_chunks = (out.shape[1] + _CHUNK - 1) // _CHUNK
+    for b in prange(out.shape[0] * n_chunks):
+        _lobe_block(geo, pt, rs, cs, log_out, out, b, n_chunks)
+
+
+@njit(cache=True)
+def _lobe_ser(geo, pt, rs, cs, log_out, out):
+    n_chunks = (out.shape[1] + _CHUNK - 1) // _CHUNK
+    for b in range(out.shape[0] * n_chunks):
+        _lobe_block(geo, pt, rs, cs, log_out, out, b, n_chunks)
+
+
+def lobe(geo, pt, per_sample, log_out, out):
+    """f (or log f) of the Phong family for every (set, pair); ``pt`` from
+    :func:`lobe_parameter_table` with W rows, or W·N rows (row w·N + j) if ``per_sample``."""
+    rs, cs = (out.shape[1], 1) if per_sample else (1, 0)
     if out.size >= PARALLEL_MIN_WORK:
-        _lobe_par(geo, kd, ks, nexp, kind, log_out, out)
+        _lobe_par(geo, pt, rs, cs, log_out, out)
     else:
-        _lobe_ser(geo, kd, ks, nexp, kind, log_out, out)
+        _lobe_ser(geo, pt, rs, cs, log_out, out)

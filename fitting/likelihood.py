@@ -110,7 +110,9 @@ class Likelihood:
             )
         self.n = int(sum(d.f.size for d in self.data))
         if self.n == 0:
-            raise ValueError("no usable samples to fit (after removing flagged and non-finite rows)")
+            raise ValueError(
+                "no usable samples to fit (after removing flagged and non-finite rows)"
+            )
         # Constant of the Student-t density, precomputed once.
         self._t_const = float(
             gammaln((self.nu + 1) / 2) - gammaln(self.nu / 2) - 0.5 * np.log(self.nu * np.pi)
@@ -125,7 +127,9 @@ class Likelihood:
         for d in self.data:
             with np.errstate(all="ignore"):
                 fm = self.model.evaluate(self.space.channel_params(natural, d.channel), d.wi, d.wo)
-            out.append(np.broadcast_to(np.asarray(fm, dtype=np.float64), (theta.shape[0], d.f.size)))
+            out.append(
+                np.broadcast_to(np.asarray(fm, dtype=np.float64), (theta.shape[0], d.f.size))
+            )
         return out
 
     def log_likelihood(self, theta: np.ndarray) -> np.ndarray:
@@ -139,6 +143,8 @@ class Likelihood:
         return np.where(np.isnan(total), -np.inf, total)
 
     def _channel_ll(self, d: ChannelData, fm: np.ndarray, s: np.ndarray | None) -> np.ndarray:
+        if self.kind == "gaussian" and not d.kind.any():
+            return self._gaussian_fast(d, fm, s)
         with np.errstate(all="ignore"):
             var = d.sigma**2 if s is None else d.sigma**2 + (s[:, None] * fm) ** 2
             r = d.f - fm
@@ -156,11 +162,32 @@ class Likelihood:
                 ll = self._exact(r, var).sum(axis=1)
         return np.where(bad, -np.inf, ll)
 
+    @staticmethod
+    def _gaussian_fast(d: ChannelData, fm: np.ndarray, s: np.ndarray | None) -> np.ndarray:
+        """The same Gaussian sum with in-place (W, N) passes — the MCMC hot path. A non-finite
+        f̂ makes the sum inf/NaN, mapped to −∞ (so no separate isfinite pass is needed)."""
+        with np.errstate(all="ignore"):
+            r = d.f - fm
+            r *= r
+            if s is None:
+                r /= d.sigma**2
+                ll = -0.5 * (r.sum(axis=1) + np.sum(np.log(d.sigma**2)) + d.f.size * _LN_2PI)
+            else:
+                v = s[:, None] * fm
+                v *= v
+                v += d.sigma**2
+                r /= v
+                np.log(v, out=v)
+                ll = -0.5 * (r.sum(axis=1) + v.sum(axis=1) + d.f.size * _LN_2PI)
+        return np.where(np.isfinite(ll), ll, -np.inf)
+
     def _exact(self, r: np.ndarray, var: np.ndarray) -> np.ndarray:
         if self.kind == "gaussian":
             return -0.5 * (r * r / var + np.log(var) + _LN_2PI)
-        return self._t_const - 0.5 * np.log(var) - 0.5 * (self.nu + 1) * np.log1p(
-            r * r / (self.nu * var)
+        return (
+            self._t_const
+            - 0.5 * np.log(var)
+            - 0.5 * (self.nu + 1) * np.log1p(r * r / (self.nu * var))
         )
 
     # -- posterior --------------------------------------------------------------------------------

@@ -132,8 +132,14 @@ def fit_least_squares(
     for x0 in starts:
         fun = make_fun(x0)
         res = least_squares(
-            fun, x0[free], bounds=(lo[free], hi[free]), loss=loss, f_scale=f_scale,
-            x_scale="jac", method="trf", max_nfev=max_nfev,
+            fun,
+            x0[free],
+            bounds=(lo[free], hi[free]),
+            loss=loss,
+            f_scale=f_scale,
+            x_scale="jac",
+            method="trf",
+            max_nfev=max_nfev,
         )
         # Compare starts on the plain cost so different robust losses are comparable.
         plain = 0.5 * float(np.sum(fun(res.x) ** 2)) if loss == "linear" else float(res.cost)

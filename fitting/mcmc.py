@@ -1,5 +1,6 @@
 """emcee sampling with autocorrelation-based burn-in and stopping (issue 7 §4, DESIGN §7).
 
+* Moves: differential-evolution + snooker by default (see ``_named_moves``).
 * The ensemble starts in a small ball around the least-squares optimum (scaled by the LSQ
   standard errors when known), clipped inside the prior box; walkers with ln p = −∞ are
   redrawn closer to the optimum.
@@ -35,7 +36,7 @@ from pathlib import Path
 import emcee
 import numpy as np
 
-__all__ = ["McmcResult", "run_mcmc", "split_rhat", "rhat_across", "initial_ball"]
+__all__ = ["MOVES", "McmcResult", "run_mcmc", "split_rhat", "rhat_across", "initial_ball"]
 
 
 @dataclass
@@ -117,6 +118,21 @@ def initial_ball(
     return p
 
 
+MOVES = ("de", "stretch")
+
+
+def _named_moves(name: str):
+    """``de``: differential evolution 0.8 + DE snooker 0.2 (ter Braak & Vrugt 2008; the mix
+    in emcee's "moves" tutorial). On a 9-parameter Torrance-Sparrow posterior it gave τ ≈ 33
+    against ≈ 95 for the default stretch move (Goodman & Weare 2010), i.e. ~3× the ESS per
+    step. ``stretch``: emcee's default."""
+    if name == "de":
+        return [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    if name == "stretch":
+        return emcee.moves.StretchMove()
+    raise ValueError(f"moves {name!r}: use one of {', '.join(MOVES)}")
+
+
 def run_mcmc(
     log_prob: Callable[[np.ndarray], np.ndarray],
     x0: np.ndarray,
@@ -128,12 +144,14 @@ def run_mcmc(
     rng: np.random.Generator | int | None = 0,
     scale: np.ndarray | None = None,
     backend_path: str | Path | None = None,
+    backend_name: str = "mcmc",
     chunk: int = 100,
     progress: bool = False,
     vectorize: bool = True,
     target_ess: float | None = None,
+    moves="de",
 ) -> McmcResult:
-    """Sample ``log_prob`` (vectorised: (W, D) → (W,)) with emcee's stretch move."""
+    """Sample ``log_prob`` ((W, D) → (W,) when vectorised) with emcee; ``moves``: name or moves."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(rng)
     x0 = np.asarray(x0, dtype=np.float64)
@@ -143,24 +161,30 @@ def run_mcmc(
     backend = None
     resume = False
     if backend_path is not None:
-        backend = emcee.backends.HDFBackend(str(backend_path))
-        resume = (
-            backend.initialized
-            and backend.shape == (walkers, ndim)
-            and backend.iteration > 0
-        )
+        backend = emcee.backends.HDFBackend(str(backend_path), name=backend_name)
+        resume = backend.initialized and backend.shape == (walkers, ndim) and backend.iteration > 0
         if not resume:
             backend.reset(walkers, ndim)
+    if isinstance(moves, str):
+        moves = _named_moves(moves)
     fn = log_prob if vectorize else (lambda x: float(np.asarray(log_prob(x))))
-    sampler = emcee.EnsembleSampler(walkers, ndim, fn, vectorize=vectorize, backend=backend)
+    sampler = emcee.EnsembleSampler(
+        walkers, ndim, fn, vectorize=vectorize, backend=backend, moves=moves
+    )
     if resume:
         start = None  # emcee continues from the stored last sample and random state
     else:
         sampler.random_state = np.random.RandomState(
             rng.integers(0, 2**32 - 1, dtype=np.uint64)
         ).get_state()
-        start = initial_ball(log_prob if vectorize else np.vectorize(fn, signature="(d)->()"),
-                             x0, walkers, bounds, rng, scale)
+        start = initial_ball(
+            log_prob if vectorize else np.vectorize(fn, signature="(d)->()"),
+            x0,
+            walkers,
+            bounds,
+            rng,
+            scale,
+        )
 
     bar = None
     if progress:
@@ -175,9 +199,6 @@ def run_mcmc(
     tau = np.full(ndim, np.nan)
     try:
         while sampler.iteration < max_steps:
-            if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
-                stop_reason = "time_budget"
-                break
             n = min(chunk, max_steps - sampler.iteration)
             if start is not None:
                 sampler.run_mcmc(start, n, skip_initial_state_check=True)
@@ -199,6 +220,10 @@ def run_mcmc(
                     stop_reason = "target_ess"
                     break
             tau_prev = tau
+            # Checked after a chunk so even a tiny budget yields a (short) chain.
+            if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
+                stop_reason = "time_budget"
+                break
             # Longer chunks as the chain grows keep the τ estimates' cost a small fraction.
             chunk = max(chunk, it // 4)
     finally:

@@ -127,7 +127,10 @@ def _c_lambda(cos_theta, sin_theta, m, distribution, rational):
     s = np.asarray(sin_theta, dtype=np.float64)
     m = np.asarray(m, dtype=np.float64)
     if distribution == "ggx":
-        return 0.5 * (np.sqrt(c * c + m * m * s * s) - c)
+        # (R − c)/2 with R = sqrt(c² + α²s²), written as α²s²/(2(R + c)): no cancellation
+        q = np.sqrt(c * c + m * m * s * s) + c
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(q > 0, 0.5 * m * m * s * s / q, 0.0)
     a = _a(c, s, m)
     if rational:
         # 1/G1 − 1 = Λ, so cosΛ = cos/G1 − cos; cos/G1 = m s (1 + 2.276a + 2.577a²)/(3.535 + 2.181a)

@@ -264,7 +264,14 @@ class PhongFamily(Model):
 
     def _numba(self, v, wi, wo, log, out):
         geo = _k.lobe_geometry(wi, wo, self._kind)
-        _k.lobe(geo, v["kd"], v["ks"], v["n"], self._kind, log, out)
+        cols = {k: v[k] for k in ("kd", "ks", "n")}
+        per_sample = any(c.shape[1] != 1 for c in cols.values())
+        if per_sample:  # one table row per (set, sample)
+            flat = {k: np.broadcast_to(c, out.shape).ravel() for k, c in cols.items()}
+        else:
+            flat = {k: np.ascontiguousarray(c[:, 0]) for k, c in cols.items()}
+        table = _k.lobe_parameter_table(flat["kd"], flat["ks"], flat["n"], self._kind)
+        _k.lobe(geo, table, per_sample, log, out)
 
 
 _DISTRIBUTIONS = {"beckmann": _k.DIST_BECKMANN, "ggx": _k.DIST_GGX}

@@ -25,6 +25,7 @@ import os
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -110,7 +111,8 @@ class ParameterSpace:
     """Flat parameter vector θ (sampled space) ↔ named natural-unit parameters.
 
     ``fixed`` holds natural values of parameters held fixed, keyed by fitted name (``kd_R`` or
-    ``m``); they are not part of θ.
+    ``m``); they are not part of θ. ``specs`` must not change after construction (bounds are
+    cached).
     """
 
     specs: tuple[ParameterSpec, ...]
@@ -148,9 +150,11 @@ class ParameterSpace:
         fixed: dict[str, float] = {}
         known: set[str] = set(names)
         for p in model.parameters:
-            targets = [(p.name, None)] if p.name in shared_set else [
-                (f"{p.name}_{c}", c) for c in channels
-            ]
+            targets = (
+                [(p.name, None)]
+                if p.name in shared_set
+                else [(f"{p.name}_{c}", c) for c in channels]
+            )
             for fitted, ch in targets:
                 known.add(fitted)
                 lower, upper = float(p.lower), float(p.upper)
@@ -193,13 +197,13 @@ class ParameterSpace:
     def ndim(self) -> int:
         return len(self.specs)
 
-    @property
+    @cached_property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Bounds of θ in the sampled (internal) space."""
         b = np.array([s.internal_bounds for s in self.specs], dtype=np.float64).reshape(-1, 2)
         return b[:, 0], b[:, 1]
 
-    @property
+    @cached_property
     def is_log(self) -> np.ndarray:
         return np.array([s.log for s in self.specs], dtype=bool)
 

@@ -34,8 +34,15 @@ __all__ = [
 
 FIT_SCHEMA_VERSION = 1
 TOP_KEYS = (
-    "schema_version", "model", "options", "channels", "parameters", "diagnostics", "goodness",
-    "n_samples", "wall_time_s",
+    "schema_version",
+    "model",
+    "options",
+    "channels",
+    "parameters",
+    "diagnostics",
+    "goodness",
+    "n_samples",
+    "wall_time_s",
 )
 PARAMETER_KEYS = ("unit", "map", "median", "p16", "p84", "p2.5", "p97.5")
 DIAGNOSTIC_KEYS = ("tau", "ess", "acceptance", "converged", "rhat", "stop_reason")

@@ -136,12 +136,20 @@ def write_samples(path: str | os.PathLike, table: SampleTable) -> Path:
     meta = {
         "gonio.schema_version": str(SCHEMA_VERSION),
         "gonio.units": json.dumps(
-            {"theta_i": "rad", "phi_i": "rad", "theta_o": "rad", "phi_o": "rad",
-             "f": "1/sr", "sigma": "1/sr"}
+            {
+                "theta_i": "rad",
+                "phi_i": "rad",
+                "theta_o": "rad",
+                "phi_o": "rad",
+                "f": "1/sr",
+                "sigma": "1/sr",
+            }
         ),
     }
     meta.update(table.metadata)
-    arrow = pa.table(cols).replace_schema_metadata({k.encode(): v.encode() for k, v in meta.items()})
+    arrow = pa.table(cols).replace_schema_metadata(
+        {k.encode(): v.encode() for k, v in meta.items()}
+    )
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         pq.write_table(arrow, tmp)

@@ -60,8 +60,9 @@ def demo(
 def acquire(
     rig: Annotated[Path | None, typer.Option("--rig", help="Rig TOML.")] = None,
     plan: Annotated[Path | None, typer.Option("--plan", help="Plan TOML.")] = None,
-    out_dir: Annotated[Path, typer.Option("--out", help="Run directory (resumed if incomplete).")]
-    = ...,  # type: ignore[assignment]
+    out_dir: Annotated[
+        Path, typer.Option("--out", help="Run directory (resumed if incomplete).")
+    ] = ...,  # type: ignore[assignment]
     scene: Annotated[Path | None, typer.Option("--scene", help="Override the rig's scene.")] = None,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
 ) -> None:
@@ -82,8 +83,13 @@ def acquire(
 def calibrate(
     run_dir: Annotated[Path, typer.Argument(help="Run directory.")],
     bin_px: Annotated[int, typer.Option(help="Region size in (super)pixels.")] = 4,
-    mode: Annotated[str, typer.Option(help='"mean" of the region\'s pixels (every photon) or '
-                                      '"center" pixel only (exact directions).')] = "mean",
+    mode: Annotated[
+        str,
+        typer.Option(
+            help='"mean" of the region\'s pixels (every photon) or '
+            '"center" pixel only (exact directions).'
+        ),
+    ] = "mean",
 ) -> None:
     """Reduce RUN_DIR's frames to RUN_DIR/samples.parquet."""
     from calibration.reduce import ReduceOptions, reduce_run
@@ -110,22 +116,25 @@ def _kv(items: list[str], what: str) -> dict[str, str]:
 
 @app.command()
 def fit(
-    samples: Annotated[Path, typer.Argument(help="samples.parquet (any table with the DESIGN §4 "
-                                            "required columns).")],
-    model: Annotated[str, typer.Option("--model", help="Model name (see `gonio models`).")]
-    = "torrance-sparrow",
+    samples: Annotated[
+        Path,
+        typer.Argument(help="samples.parquet (any table with the DESIGN §4 required columns)."),
+    ],
+    model: Annotated[
+        str, typer.Option("--model", help="Model name (see `gonio models`).")
+    ] = "torrance-sparrow",
     option: Annotated[list[str], typer.Option("--option", help="Model option KEY=VALUE.")] = [],  # noqa: B006
     fix: Annotated[list[str], typer.Option("--fix", help="Hold NAME=VALUE fixed.")] = [],  # noqa: B006
-    shared: Annotated[str, typer.Option(help="Comma list of parameters shared by channels.")]
-    = "m",
+    shared: Annotated[str, typer.Option(help="Comma list of parameters shared by channels.")] = "m",
     channels: Annotated[str | None, typer.Option(help="Comma list, e.g. R,G,B.")] = None,
     no_mcmc: Annotated[bool, typer.Option("--no-mcmc", help="Least squares only.")] = False,
     walkers: Annotated[int, typer.Option(help="emcee walkers.")] = 32,
     steps: Annotated[int, typer.Option(help="Maximum MCMC steps.")] = 3000,
     time_budget: Annotated[float | None, typer.Option(help="MCMC wall-time budget [s].")] = None,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-    out_dir: Annotated[Path | None, typer.Option("--out", help="Output directory "
-                                                 "(default: beside SAMPLES).")] = None,
+    out_dir: Annotated[
+        Path | None, typer.Option("--out", help="Output directory (default: beside SAMPLES).")
+    ] = None,
 ) -> None:
     """Fit a model to SAMPLES: writes fit-NAME.json and fit-NAME.h5."""
     from fitting import models as model_registry
@@ -166,11 +175,17 @@ def fit(
 @app.command(name="calibrate-camera")
 def calibrate_camera(
     images: Annotated[list[Path], typer.Argument(help="Board images (JPEG/PNG/TIFF).")],
-    board: Annotated[str, typer.Option("--board", help="charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT "
-                                       "or chessboard:COLSxROWS:SQUARE_M")] = ...,  # type: ignore[assignment]
+    board: Annotated[
+        str,
+        typer.Option(
+            "--board",
+            help="charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT or chessboard:COLSxROWS:SQUARE_M",
+        ),
+    ] = ...,  # type: ignore[assignment]
     fix_aspect: Annotated[bool, typer.Option("--fix-aspect", help="Hold fx/fy fixed.")] = False,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Write the result as JSON.")]
-    = None,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Write the result as JSON.")
+    ] = None,
 ) -> None:
     """Camera intrinsics and distortion from board images (OpenCV 5)."""
     from calibration.camera_model import (
@@ -194,10 +209,24 @@ def report(run_dir: Annotated[Path, typer.Argument(help="Run directory.")]) -> N
     out.print(str(write_report(run_dir)))
 
 
+simulate_app = typer.Typer(no_args_is_help=True, help="The simulated rig.")
+app.add_typer(simulate_app, name="simulate")
+
+
+@simulate_app.command("plan")
+def simulate_plan(scene: Annotated[Path, typer.Argument(help="Scene TOML.")]) -> None:
+    """Print the simulation stages a scene needs and their estimated cost per capture."""
+    from simulator.planner import plan_effects
+    from simulator.scene import load_scene
+
+    out.print(plan_effects(load_scene(scene)).describe(), markup=False, highlight=False)
+
+
 @app.command(name="models")
 def models_cmd(
-    check: Annotated[bool, typer.Option("--check", help="Measure properties of each model.")]
-    = False,
+    check: Annotated[
+        bool, typer.Option("--check", help="Measure properties of each model.")
+    ] = False,
 ) -> None:
     """List the BRDF models with their parameters, units and bounds."""
     from fitting import models as registry
@@ -208,8 +237,14 @@ def models_cmd(
     for name in registry.names():
         m = registry.get(name)
         for i, p in enumerate(m.parameters):
-            t.add_row(name if i == 0 else "", p.name, p.unit, f"{p.lower:g}", f"{p.upper:g}",
-                      "log" if p.log else "linear")
+            t.add_row(
+                name if i == 0 else "",
+                p.name,
+                p.unit,
+                f"{p.lower:g}",
+                f"{p.upper:g}",
+                "log" if p.log else "linear",
+            )
     out.print(t)
     if check:
         from fitting.properties import property_table
@@ -220,8 +255,9 @@ def models_cmd(
         for k in keys:
             pt.add_column(k)
         for r in rows:
-            pt.add_row(*(("yes" if v else "no") if isinstance(v, bool) else str(v)
-                         for v in r.values()))
+            pt.add_row(
+                *(("yes" if v else "no") if isinstance(v, bool) else str(v) for v in r.values())
+            )
         out.print(pt)
 
 

@@ -28,7 +28,8 @@ __all__ = ["write_report"]
 
 _CSS = """
 body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222;padding:0 1em}
-h1{font-size:1.6em}h2{font-size:1.25em;border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:2em}
+h1{font-size:1.6em}
+h2{font-size:1.25em;border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:2em}
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:.25em .6em;
 text-align:right}th{background:#f4f4f4}td:first-child,th:first-child{text-align:left}
 .ok{color:#176e1b}.bad{color:#b00020}.note{color:#555;font-size:.9em}img{max-width:100%}
@@ -91,8 +92,16 @@ def _slice_plot(samples, fits: list[dict]) -> str:
                 continue
             signed = np.where(in_plane[m], 1, -1) * np.degrees(good.theta_o[m])
             order = np.argsort(signed)
-            ax.errorbar(signed[order], good.f[m][order], yerr=good.sigma[m][order], fmt=".",
-                        ms=3, color=col, alpha=0.6, label=f"θi≈{lev:.0f}°")
+            ax.errorbar(
+                signed[order],
+                good.f[m][order],
+                yerr=good.sigma[m][order],
+                fmt=".",
+                ms=3,
+                color=col,
+                alpha=0.6,
+                label=f"θi≈{lev:.0f}°",
+            )
             if fits:
                 fit = fits[0]
                 model = models.get(fit["model"], **fit.get("options", {}))
@@ -104,22 +113,45 @@ def _slice_plot(samples, fits: list[dict]) -> str:
                 f = model.evaluate(params, wi, wo)
                 ax.plot(np.degrees(to), f, "-", color=col, lw=1.2)
         ax.set_yscale("log")
-        ax.set_xlabel("signed θo in the plane of incidence [deg] (+ = specular side)")
+        ax.set_xlabel("signed θo [deg] (+ = specular side)")
         ax.set_ylabel("f_r [1/sr]")
-        ax.set_title(f"channel {ch}: measured (dots, ±1σ) vs MAP fit (lines)")
+        ax.set_title(f"channel {ch}")
         ax.legend(fontsize=7)
+    fig.suptitle("Plane of incidence: measured (dots, ±1σ) vs MAP fit (lines)")
     fig.tight_layout()
     return _png(fig)
 
 
-def _posterior_plot(run_dir: Path, fit: dict) -> str | None:
+def _load_posterior(path: Path, fit: dict) -> tuple[list[str], np.ndarray]:
+    """Second half of the stored emcee chain, in natural units.
+
+    The chain is stored in the sampling space (log for scale parameters); columns follow the
+    parameter order of the fit JSON. Each column's transform (identity or exp) is the one whose
+    median reproduces the JSON median — both come from the same chain.
+    """
+    import h5py
+
+    names = list(fit["parameters"])
+    with h5py.File(path, "r") as fh:
+        chain = np.asarray(fh["mcmc"]["chain"])
+        it = int(fh["mcmc"].attrs["iteration"])
+    chain = chain[it // 2 : it].reshape(-1, chain.shape[-1])
+    if chain.shape[1] != len(names) or chain.shape[0] == 0:
+        raise ValueError("chain does not match the fit")
+    out = np.empty_like(chain)
+    for j, name in enumerate(names):
+        med = fit["parameters"][name]["median"]
+        lin, ex = chain[:, j], np.exp(np.clip(chain[:, j], -700, 700))
+        err_lin = abs(np.median(lin) - med)
+        err_exp = abs(np.median(ex) - med)
+        out[:, j] = ex if err_exp < err_lin else lin
+    return names, out
+
+
+def _posterior_plot(run_dir: Path, fit: dict, truth: dict[str, float]) -> str | None:
     """Marginal histograms of the stored chain (fit-<model>.h5), natural units."""
     try:
-        from fitting.result import load_posterior
-    except ImportError:
-        return None
-    try:
-        names, draws = load_posterior(run_dir / f"fit-{fit['model']}.h5", fit)
+        names, draws = _load_posterior(run_dir / f"fit-{fit['model']}.h5", fit)
     except (OSError, KeyError, ValueError):
         return None
     k = len(names)
@@ -130,9 +162,11 @@ def _posterior_plot(run_dir: Path, fit: dict) -> str | None:
         ax = axes[i // cols][i % cols]
         ax.hist(draws[:, i], bins=40, color="#4477aa", alpha=0.8)
         p = fit["parameters"][name]
-        for q, ls in (("p2.5", ":"), ("p16", "--"), ("median", "-"), ("p84", "--"),
-                      ("p97.5", ":")):
+        for q, ls in (("p2.5", ":"), ("p16", "--"), ("median", "-"), ("p84", "--"), ("p97.5", ":")):
             ax.axvline(p[q], color="k", ls=ls, lw=0.8)
+        if name in truth:
+            ax.axvline(truth[name], color="#cc3311", lw=1.5, label="truth (scene)")
+            ax.legend(fontsize=7)
         ax.set_title(f"{name} [{p.get('unit', '')}]", fontsize=9)
     for j in range(k, rows * cols):
         axes[j // cols][j % cols].axis("off")
@@ -155,7 +189,8 @@ def write_report(run_dir: Path | str, compute_times_s: dict[str, float] | None =
         truth = reference_parameters(Scene.model_validate(cfg["scene"]))
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'>",
-        f"<title>gonio report — {html.escape(run_dir.name)}</title><style>{_CSS}</style></head><body>",
+        f"<title>gonio report — {html.escape(run_dir.name)}</title>",
+        f"<style>{_CSS}</style></head><body>",
         f"<h1>gonio report: {html.escape(run_dir.name)}</h1>",
         f"<p class='note'>gonio {html.escape(str(cfg.get('gonio', {}).get('version', '?')))}, "
         f"started {html.escape(str(cfg.get('gonio', {}).get('started_at', '?')))}. "
@@ -168,19 +203,50 @@ def write_report(run_dir: Path | str, compute_times_s: dict[str, float] | None =
     parts.append("<h2>Measured vs fitted, plane of incidence</h2>")
     parts.append(f"<img src='{_slice_plot(samples, fits)}'>")
     for fit in fits:
-        parts.append(f"<h2>Fit: {html.escape(fit['model'])} "
-                     f"{html.escape(json.dumps(fit.get('options', {})))}</h2>")
+        parts.append(
+            f"<h2>Fit: {html.escape(fit['model'])} "
+            f"{html.escape(json.dumps(fit.get('options', {})))}</h2>"
+        )
         rows = []
         for name, p in fit["parameters"].items():
             t = truth.get(name)
             inside = None if t is None else bool(p["p2.5"] <= t <= p["p97.5"])
-            rows.append([name, p.get("unit", ""), p["map"], p["median"], p["p16"], p["p84"],
-                         p["p2.5"], p["p97.5"], t, inside])
-        parts.append(_table(["parameter", "unit", "MAP", "median", "p16", "p84", "p2.5",
-                             "p97.5", "truth", "truth in 95%"], rows))
+            rows.append(
+                [
+                    name,
+                    p.get("unit", ""),
+                    p["map"],
+                    p["median"],
+                    p["p16"],
+                    p["p84"],
+                    p["p2.5"],
+                    p["p97.5"],
+                    t,
+                    inside,
+                ]
+            )
+        parts.append(
+            _table(
+                [
+                    "parameter",
+                    "unit",
+                    "MAP",
+                    "median",
+                    "p16",
+                    "p84",
+                    "p2.5",
+                    "p97.5",
+                    "truth",
+                    "truth in 95%",
+                ],
+                rows,
+            )
+        )
         diag = fit.get("diagnostics", {})
-        drows = [[n, diag.get("tau", {}).get(n), diag.get("ess", {}).get(n),
-                  diag.get("rhat", {}).get(n)] for n in fit["parameters"]]
+        drows = [
+            [n, diag.get("tau", {}).get(n), diag.get("ess", {}).get(n), diag.get("rhat", {}).get(n)]
+            for n in fit["parameters"]
+        ]
         parts.append("<h3>MCMC diagnostics</h3>")
         parts.append(
             f"<p>acceptance {_fmt(diag.get('acceptance'))}, converged "
@@ -191,9 +257,12 @@ def write_report(run_dir: Path | str, compute_times_s: dict[str, float] | None =
         if good:
             parts.append("<h3>Goodness of fit</h3>")
             parts.append(_table(list(good), [list(good.values())]))
-        post = _posterior_plot(run_dir, fit)
+        post = _posterior_plot(run_dir, fit, truth)
         if post:
-            parts.append("<h3>Posterior marginals (lines: median, 68% and 95% intervals)</h3>")
+            parts.append(
+                "<h3>Posterior marginals (black: median, 68% and 95% intervals; "
+                "red: the simulated truth)</h3>"
+            )
             parts.append(f"<img src='{post}'>")
     parts.append("<h2>Time</h2>")
     lab = store.meta("lab_time_s")
@@ -206,5 +275,3 @@ def write_report(run_dir: Path | str, compute_times_s: dict[str, float] | None =
     out = run_dir / "report.html"
     atomic_write_bytes(out, "\n".join(parts).encode(), overwrite=True)
     return out
-
-

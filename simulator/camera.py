@@ -95,7 +95,7 @@ class SimCamera:
         }
         if self.scene.camera.format == "dng":
             if dn.ndim != 2:
-                raise ValueError("DNG output needs a Bayer sensor (set sensor.bayer = \"RGGB\")")
+                raise ValueError('DNG output needs a Bayer sensor (set sensor.bayer = "RGGB")')
             data = encode_dng(
                 dn,
                 meta,

@@ -64,17 +64,19 @@ class SimWorld:
     @staticmethod
     def _ticks(ax, angle_rad: float) -> int:
         zero = math.radians(ax.zero_offset_deg)
-        return int(round((angle_rad - zero) * ax.direction * ax.gear_ratio * TICKS_PER_REV
-                         / (2 * math.pi)))
+        return int(
+            round((angle_rad - zero) * ax.direction * ax.gear_ratio * TICKS_PER_REV / (2 * math.pi))
+        )
 
     def true_axes_rad(self) -> dict[str, float]:
         """Physical axis angles (what the arms really are at), from the emulator's state."""
         ticks = self.bus.true_positions_ticks()
         out = {}
         for ax in self.rig.axes:
-            out[ax.role] = math.radians(ax.zero_offset_deg) + ax.direction * ticks[ax.id] * (
-                2 * math.pi / TICKS_PER_REV
-            ) / ax.gear_ratio
+            out[ax.role] = (
+                math.radians(ax.zero_offset_deg)
+                + ax.direction * ticks[ax.id] * (2 * math.pi / TICKS_PER_REV) / ax.gear_ratio
+            )
         return out
 
     def positions_m(self) -> tuple[np.ndarray, np.ndarray]:

@@ -41,8 +41,10 @@ def test_unknown_key_names_the_key(tmp_path: Path, configs: Path) -> None:
 
 
 def test_angle_out_of_range_names_key_and_range(tmp_path: Path, configs: Path) -> None:
-    text = (configs / "plans" / "demo.toml").read_text().replace(
-        "theta_i_deg = [20.0", "theta_i_deg = [95.0"
+    text = (
+        (configs / "plans" / "demo.toml")
+        .read_text()
+        .replace("theta_i_deg = [20.0", "theta_i_deg = [95.0")
     )
     with pytest.raises(ConfigError) as exc:
         load_plan(_write(tmp_path, "plan.toml", text))

@@ -37,8 +37,14 @@ def demo_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_demo_writes_every_contract_file(demo_run: Path) -> None:
-    for name in ("run.toml", "manifest.sqlite", "samples.parquet", "report.html",
-                 "fit-torrance-sparrow.json", "fit-torrance-sparrow.h5"):
+    for name in (
+        "run.toml",
+        "manifest.sqlite",
+        "samples.parquet",
+        "report.html",
+        "fit-torrance-sparrow.json",
+        "fit-torrance-sparrow.h5",
+    ):
         assert (demo_run / name).exists(), name
     store = RunStore.open(demo_run)
     assert store.complete

@@ -131,6 +131,19 @@ def test_sync_write_and_sync_read(sdk) -> None:
     assert [r[4] for r in replies] == [5, 1, 2]
 
 
+def test_fast_sync_read(sdk) -> None:
+    ph, port = sdk.ph, sdk.port
+    for i, v in {1: 5, 2: 6, 5: 7}.items():
+        assert ph.write4ByteTxRx(port, i, PROF_ACC, 1000 * v + i) == (COMM_SUCCESS, 0)
+    gr = GroupSyncRead(port, ph, PROF_ACC, 4)
+    for i in (2, 5, 1):
+        gr.addParam(i)
+    assert gr.fastSyncRead() == COMM_SUCCESS
+    assert {i: gr.getData(i, PROF_ACC, 4) for i in (1, 2, 5)} == {1: 5001, 2: 6002, 5: 7005}
+    gr.addParam(9)  # absent: the shared packet breaks off, the SDK sees a partial packet
+    assert gr.fastSyncRead() == COMM_RX_CORRUPT
+
+
 def test_sync_read_with_missing_servo_times_out(sdk) -> None:
     gr = GroupSyncRead(sdk.port, sdk.ph, PRESENT, 4)
     gr.addParam(1)
@@ -518,6 +531,23 @@ def test_wait_uses_virtual_time_and_matches_profile(drv) -> None:
     total, _ = manual_profile(d, 60, 20)
     # wait polls every poll_s of clock time, so it returns within one poll of arrival
     assert total <= elapsed + 1e-9 <= total + 0.05 + 1e-9
+
+
+def test_wait_sleeps_to_expected_end_then_polls(drv) -> None:
+    dx = drv.make()
+    ax = _axis(dx, poll_s=0.01)
+    ax.torque(True)
+    ax.position()  # start position now known -> the move has an expected end
+    drv.bus.traffic = []
+    t0 = drv.clock.now()
+    ax.move_to(math.radians(100))
+    ax.wait(timeout_s=30)
+    wire = b"".join(d for k, d in drv.bus.traffic if k == "rx")
+    reads = [p for p in P.PacketDecoder().feed(wire) if p.instruction == P.INST_READ]
+    assert 1 <= len(reads) <= 2  # not one per 10 ms poll over a ~0.8 s move
+    total, _ = manual_profile(abs(round(100 / 360 * 4096) - 2048), 60, 20)
+    assert total <= drv.clock.now() - t0 + 1e-9 <= total + 0.01 + 1e-9
+    assert abs(drv.bus.servo(1).register("present_position") - round(100 / 360 * 4096)) == 0
 
 
 def test_wait_times_out_on_stuck_axis(drv) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import h5py
 import numpy as np
 import pytest
 
@@ -15,8 +16,15 @@ from fitting.samples import Flags, SampleTable
 
 # The contract, copied from DESIGN §4 (not imported from the code under test).
 TOP = {
-    "schema_version", "model", "options", "channels", "parameters", "diagnostics", "goodness",
-    "n_samples", "wall_time_s",
+    "schema_version",
+    "model",
+    "options",
+    "channels",
+    "parameters",
+    "diagnostics",
+    "goodness",
+    "n_samples",
+    "wall_time_s",
 }
 PARAM = {"unit", "map", "median", "p16", "p84", "p2.5", "p97.5"}
 DIAG = {"tau", "ess", "acceptance", "converged", "rhat", "stop_reason"}
@@ -69,7 +77,7 @@ def test_json_contract_and_roundtrip(tmp_path):
     # χ²/dof for a correct model with correct σ: 1 ± √(2/dof) ≈ 1 ± 0.07.
     assert abs(d["goodness"]["chi2_red"] - 1) < 0.3
     back = read_fit(path)
-    assert back.to_dict() == d
+    assert back.to_dict() == d == res.to_dict()
     assert not list(tmp_path.glob(".*tmp*"))  # atomic write left no temp file
 
 
@@ -94,7 +102,15 @@ def test_parameter_naming_shared_and_fixed():
     model = models.get("torrance-sparrow")  # default dielectric Fresnel: ior
     space = ParameterSpace.build(model, ["R", "G", "B"], shared=None, discrepancy=True)
     assert set(space.names) == {
-        "kd_R", "kd_G", "kd_B", "ks_R", "ks_G", "ks_B", "m", "ior", "discrepancy",
+        "kd_R",
+        "kd_G",
+        "kd_B",
+        "ks_R",
+        "ks_G",
+        "ks_B",
+        "m",
+        "ior",
+        "discrepancy",
     }
     space = ParameterSpace.build(model, ["R", "G"], shared=["m"], fix={"ior": 1.5, "kd_G": 0.1})
     # ior not shared here → per channel, and a bare-name fix holds it in every channel.
@@ -127,3 +143,21 @@ def test_read_fit_errors(tmp_path):
     partial.write_text(json.dumps({"schema_version": 1, "model": "x"}))
     with pytest.raises(FitResultError, match="missing"):
         read_fit(partial)
+
+
+def test_two_ensembles_rhat_and_time_budget(tmp_path):
+    rng = np.random.default_rng(5)
+    table = lambert_table(rng, n=100)
+    res = fit_samples(
+        table, "lambert", steps=800, walkers=16, seed=6, ensembles=2, out_dir=tmp_path
+    )
+    d = res.to_dict()["diagnostics"]
+    # Both ensembles sample the same posterior: R̂ across them ≈ 1 (≈ √(1 + τ/n) ≲ 1.05 for
+    # n ≈ 700 kept steps and τ ≈ 30), and the chains are pooled (2 × 16 walkers).
+    assert all(1 - 0.05 < r < 1.1 for r in d["rhat"].values()), d["rhat"]
+    assert res.extras["mcmc"].chain.shape[1] == 32
+    with h5py.File(tmp_path / "fit-lambert.h5") as h5:
+        assert {"mcmc", "mcmc_1"} <= set(h5)
+    quick = fit_samples(table, "lambert", steps=100_000, walkers=16, seed=6, time_budget_s=0.0)
+    assert quick.diagnostics["stop_reason"] == "time_budget"
+    assert quick.diagnostics["converged"] is False

@@ -128,7 +128,9 @@ def test_never_nan_on_hostile_data():
     exactly π/2), retro, near-specular and tiny-σ samples: finite or −∞, never NaN."""
     rng = np.random.default_rng(4)
     n = 60
-    ti = np.concatenate([[0.0, np.pi / 2, np.pi / 2 - 1e-12, 1.5, 0.3, 0.3], rng.uniform(0, 1.57, n - 6)])
+    ti = np.concatenate(
+        [[0.0, np.pi / 2, np.pi / 2 - 1e-12, 1.5, 0.3, 0.3], rng.uniform(0, 1.57, n - 6)]
+    )
     to = np.concatenate([[0.0, 0.2, np.pi / 2, np.pi / 2, 0.3, 0.3], rng.uniform(0, 1.57, n - 6)])
     po = np.concatenate([[0.0, 0.0, np.pi, 0.0, np.pi, 0.0], rng.uniform(0, 2 * np.pi, n - 6)])
     f = rng.uniform(0, 5, n)
@@ -201,3 +203,24 @@ def test_ngan_residuals_independent():
     w = np.sin(t.theta_i) * np.sin(t.theta_o)
     expected_cost = np.sum(w * ((t.f - mu) * np.cos(t.theta_i)) ** 2)
     assert np.sum(r**2) == pytest.approx(expected_cost, rel=1e-12)
+
+
+def test_energy_prior_albedo():
+    from fitting.priors import albedo_prior
+
+    # Lambert: a(ω_i) = kd exactly (the quadrature in cos²θ_o integrates a constant exactly).
+    lam = models.get("lambert")
+    space = ParameterSpace.build(lam, ["R"])
+    space.energy_prior = albedo_prior(lam, space)
+    lp = space.log_prior(np.array([[0.999], [0.3]]))
+    assert np.all(lp == 0.0)
+    # Torrance-Sparrow, F = 1: kd = 0.6 plus a ks = 1, m = 0.3 lobe (albedo ≈ 0.9+, DESIGN §6
+    # gives 0.92–1.0 for Beckmann m = 0.3) is far above 1; kd = 0.2 with ks = 0.3 is far below.
+    ts = models.get("torrance-sparrow", fresnel="none")
+    space = ParameterSpace.build(ts, ["R"])
+    space.energy_prior = albedo_prior(ts, space)
+    names = space.names
+    rows = [{"kd_R": 0.6, "ks_R": 1.0, "m": 0.3}, {"kd_R": 0.2, "ks_R": 0.3, "m": 0.3}]
+    theta = np.array([space.to_internal([r[n] for n in names]) for r in rows])
+    lp = space.log_prior(theta)
+    assert np.isneginf(lp[0]) and lp[1] == 0.0

@@ -50,7 +50,8 @@ def synthetic(m: float, n: int, rng: np.random.Generator, rel_noise=0.03) -> Sam
         f = ts_reference(TRUTH["kd"][c], TRUTH["ks"][c], m, wi, wo)
         sig = rel_noise * f + 1e-3
         for k, v in zip(
-            cols, (ti, np.zeros(n), to, po, np.full(n, c), f + sig * rng.standard_normal(n), sig),
+            cols,
+            (ti, np.zeros(n), to, po, np.full(n, c), f + sig * rng.standard_normal(n), sig),
             strict=True,
         ):
             cols[k].append(v)
@@ -72,8 +73,13 @@ def test_lsq_and_mcmc_recover_truth_and_fisher_width():
     m_true = 0.2
     table = synthetic(m_true, 300, rng)
     res = fit_samples(
-        table, "torrance-sparrow", {"fresnel": "none"}, discrepancy=False, steps=4000,
-        walkers=32, seed=3,
+        table,
+        "torrance-sparrow",
+        {"fresnel": "none"},
+        discrepancy=False,
+        steps=4000,
+        walkers=32,
+        seed=3,
     )
     truth = {"m": m_true}
     for c in "RGB":
@@ -148,7 +154,10 @@ def _rhat_bda3(chains: list[list[float]]) -> float:
     means = [sum(c) / n for c in chains]
     grand = sum(means) / m
     b = n / (m - 1) * sum((x - grand) ** 2 for x in means)
-    w = sum(sum((x - mu) ** 2 for x in c) / (n - 1) for c, mu in zip(chains, means, strict=True)) / m
+    w = (
+        sum(sum((x - mu) ** 2 for x in c) / (n - 1) for c, mu in zip(chains, means, strict=True))
+        / m
+    )
     return ((n - 1) / n * w + b / n) / w
 
 
@@ -175,12 +184,28 @@ def test_hdf_resume_continues_chain(tmp_path):
         return -0.5 * np.sum(np.atleast_2d(x) ** 2, axis=1)
 
     b = (np.full(2, -10.0), np.full(2, 10.0))
-    first = run_mcmc(log_prob, np.zeros(2), bounds=b, walkers=8, max_steps=120, rng=1,
-                     backend_path=path, chunk=60)
+    first = run_mcmc(
+        log_prob,
+        np.zeros(2),
+        bounds=b,
+        walkers=8,
+        max_steps=120,
+        rng=1,
+        backend_path=path,
+        chunk=60,
+    )
     assert first.iterations == 120
     stored = emcee.backends.HDFBackend(str(path), read_only=True).get_chain()
-    second = run_mcmc(log_prob, np.zeros(2), bounds=b, walkers=8, max_steps=300, rng=2,
-                      backend_path=path, chunk=60)
+    second = run_mcmc(
+        log_prob,
+        np.zeros(2),
+        bounds=b,
+        walkers=8,
+        max_steps=300,
+        rng=2,
+        backend_path=path,
+        chunk=60,
+    )
     assert second.iterations == 300
     after = emcee.backends.HDFBackend(str(path), read_only=True)
     assert after.iteration == 300
@@ -191,6 +216,7 @@ def test_hdf_resume_continues_chain(tmp_path):
     assert np.all(np.linalg.norm(step, axis=1) < 10)
     assert not np.allclose(after.get_chain()[120], 0, atol=1e-2)
     # A different ensemble shape resets the file instead of failing.
-    third = run_mcmc(log_prob, np.zeros(2), bounds=b, walkers=10, max_steps=50, rng=3,
-                     backend_path=path)
+    third = run_mcmc(
+        log_prob, np.zeros(2), bounds=b, walkers=10, max_steps=50, rng=3, backend_path=path
+    )
     assert third.iterations == 50

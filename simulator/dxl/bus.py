@@ -8,7 +8,7 @@ handler) move those bytes.
 
 Instructions: PING (unicast and broadcast, replies in ID order), READ, WRITE, REG_WRITE,
 ACTION, REBOOT, SYNC_READ (replies in the order of the IDs in the instruction), SYNC_WRITE,
-BULK_READ, BULK_WRITE. Broadcast (FE) writes get no reply. Status Return Level (68) is
+BULK_READ, BULK_WRITE, and FAST_SYNC_READ (one shared status packet). Broadcast (FE) writes get no reply. Status Return Level (68) is
 honoured: 0 = only PING replies, 1 = PING and reads, 2 = all.
 
 Ground truth for the simulated camera: `bus.servo(id).true_position_ticks()` (Present
@@ -175,7 +175,7 @@ class EmulatedBus:
         is_read: bool = False,
         is_ping: bool = False,
     ) -> list[Reply]:
-        level = servo.register("status_return_level")
+        level = servo._get("status_return_level")  # RAM, no live refresh needed
         if not is_ping and (level == 0 or (level == 1 and not is_read)):
             return []
         error = err | servo.error_bits()
@@ -196,9 +196,17 @@ class EmulatedBus:
                     out += self._ping(self.servos[i])
                 return out
             return self._ping(self.servos[did]) if unicast else []
-        if inst in (P.INST_SYNC_READ, P.INST_SYNC_WRITE, P.INST_BULK_READ, P.INST_BULK_WRITE):
+        if inst in (
+            P.INST_SYNC_READ,
+            P.INST_SYNC_WRITE,
+            P.INST_BULK_READ,
+            P.INST_BULK_WRITE,
+            P.INST_FAST_SYNC_READ,
+        ):
             if did != P.BROADCAST_ID:
                 return self._status(self.servos[did], P.ERRNUM_INSTRUCTION) if unicast else []
+            if inst == P.INST_FAST_SYNC_READ:
+                return self._fast_sync_read(params)
             return self._group(inst, params)
         if inst == P.INST_ACTION:
             targets = (
@@ -242,6 +250,35 @@ class EmulatedBus:
         if inst == P.INST_CLEAR:
             return self._status(s, 0)
         return self._status(s, P.ERRNUM_INSTRUCTION)
+
+    def _fast_sync_read(self, params: bytes) -> list[Reply]:
+        """FAST SYNC READ (0x8A): the servos answer together in ONE status packet with ID FE:
+        per servo [error, id, data..., crc], where each crc is the running CRC of the packet
+        so far and the last one is the packet CRC. Not byte-stuffed (the SDK decodes this
+        packet without unstuffing). A missing servo breaks the chain: the packet stops there
+        (the host sees a partial packet)."""
+        if len(params) < 5:
+            return []
+        addr, length = _u16(params, 0), _u16(params, 2)
+        ids = list(params[4:])
+        total = 1 + len(ids) * (length + 4)  # inst + records (the last "crc" is the packet's)
+        pkt = bytearray(P.HEADER) + bytes([P.BROADCAST_ID, total & 0xFF, total >> 8])
+        pkt.append(P.INST_STATUS)
+        complete = True
+        for did in ids:
+            s = self.servos.get(did)
+            if s is None:
+                complete = False
+                break
+            err, data = s.read(addr, length)
+            pkt += bytes([err | s.error_bits(), did])
+            pkt += data if not err else bytes(length)
+            crc = P.crc16(pkt)
+            pkt += bytes([crc & 0xFF, crc >> 8])
+        reply = self.faults.apply(ids[0], bytes(pkt)) if complete else None
+        if not complete:
+            return [Reply(bytes(pkt))] if len(pkt) > 8 else []
+        return [] if reply is None else [reply]
 
     def _group(self, inst: int, params: bytes) -> list[Reply]:
         out: list[Reply] = []

@@ -1,0 +1,94 @@
+"""Speed of the BRDF models: ns per (sample × parameter set), fused numba kernels vs the numpy
+reference, at N = 10⁴ direction pairs and W = 64 parameter sets (one emcee ensemble).
+
+Run: ``.venv/bin/python benchmarks/bench_models.py [--n 10000] [--w 64] [--repeat 7]``.
+Prints a table; no assertions (DESIGN §2: speed lives here, not in the tests). The first call
+of each kernel (JIT compile or cache load) is excluded; the best of ``repeat`` runs is shown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numba
+import numpy as np
+
+from fitting import models
+from fitting.directions import uniform_hemisphere
+
+__all__ = ["main", "CASES"]
+
+CASES: list[tuple[str, dict]] = [
+    ("lambert", {}),
+    ("phong", {}),
+    ("phong-normalized", {}),
+    ("blinn-phong", {}),
+    ("torrance-sparrow", {}),  # seed form: beckmann, v-cavity, dielectric
+    ("torrance-sparrow", {"shadowing": "smith-rational", "fresnel": "conductor"}),
+    ("torrance-sparrow", {"shadowing": "smith"}),
+    ("torrance-sparrow", {"shadowing": "smith-correlated", "fresnel": "none"}),
+    ("torrance-sparrow", {"distribution": "ggx", "shadowing": "smith", "fresnel": "schlick"}),
+]
+
+_VALUES = {
+    "kd": (0.0, 0.5),
+    "ks": (0.1, 1.0),
+    "n": (5.0, 500.0),
+    "m": (0.05, 0.5),
+    "ior": (1.3, 2.0),
+    "eta": (0.1, 1.5),
+    "k": (1.0, 5.0),
+    "f0": (0.02, 0.9),
+}
+
+
+def _best(fn, repeat):
+    fn()  # compile / load from cache
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=10_000, help="direction pairs N")
+    ap.add_argument("--w", type=int, default=64, help="parameter sets W")
+    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--threads", type=int, default=None, help="numba threads (default all)")
+    args = ap.parse_args(argv)
+    if args.threads:
+        numba.set_num_threads(args.threads)
+    rng = np.random.default_rng(0)
+    wi, wo = uniform_hemisphere(args.n, rng), uniform_hemisphere(args.n, rng)
+    evals = args.n * args.w
+    print(
+        f"N = {args.n}, W = {args.w}, numba threads = {numba.get_num_threads()}, "
+        f"layer = {numba.config.THREADING_LAYER}"
+    )
+    print(
+        f"{'model':<52} {'numba f':>9} {'numba log':>10} {'numpy f':>9} {'numpy log':>10}"
+        "   (ns per sample × set)"
+    )
+    for name, options in CASES:
+        model = models.get(name, **options)
+        params = {p: rng.uniform(*_VALUES[p], (args.w, 1)) for p in model.parameter_names}
+        row = []
+        for backend in ("numba", "numpy"):
+            for fn in (model.evaluate, model.log_evaluate):
+                t = _best(
+                    lambda fn=fn, backend=backend, params=params: fn(
+                        params, wi, wo, backend=backend
+                    ),
+                    args.repeat if backend == "numba" else max(1, args.repeat // 3),
+                )
+                row.append(t / evals * 1e9)
+        label = name + (" " + ",".join(options.values()) if options else "")
+        print(f"{label:<52} {row[0]:9.2f} {row[1]:10.2f} {row[2]:9.2f} {row[3]:10.2f}")
+
+
+if __name__ == "__main__":
+    main()
