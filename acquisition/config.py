@@ -27,6 +27,7 @@ __all__ = [
     "format_validation_error",
 ]
 
+VELOCITY_LIMIT = {"XM430-W350": 200, "XL430-W250": 265}
 AxisRole = Literal["light_theta", "light_phi", "camera_theta", "camera_phi", "sample_azimuth"]
 
 
@@ -53,6 +54,13 @@ class AxisConfig(_Strict):
 
     @model_validator(mode="after")
     def _range(self) -> AxisConfig:
+        # Profile Velocity may not exceed the model's Velocity Limit (reg 44, factory value).
+        vmax = VELOCITY_LIMIT[self.model]
+        if self.profile_velocity > vmax:
+            raise ValueError(
+                f"profile_velocity {self.profile_velocity} exceeds the {self.model} velocity "
+                f"limit {vmax} (0.229 rpm units)"
+            )
         if self.min_deg >= self.max_deg:
             raise ValueError(f"min_deg ({self.min_deg}) must be below max_deg ({self.max_deg})")
         return self

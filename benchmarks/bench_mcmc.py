@@ -76,21 +76,29 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--target-ess", type=float, default=1000.0)
     ap.add_argument("--baseline-steps", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--moves", default="de", help="de (default) or stretch")
+    ap.add_argument("--fix-ior", action="store_true", help="hold ior = 1.5 (8 parameters)")
+    ap.add_argument("--no-discrepancy", action="store_true", help="drop the discrepancy term")
     args = ap.parse_args(argv)
 
     rng = np.random.default_rng(args.seed)
     table = synthetic_table(args.samples, rng)
     model = models.get("torrance-sparrow")
-    space = ParameterSpace.build(model, ["R", "G", "B"], discrepancy=True)
+    space = ParameterSpace.build(
+        model,
+        ["R", "G", "B"],
+        discrepancy=not args.no_discrepancy,
+        fix={"ior": TRUTH["ior"]} if args.fix_ior else None,
+    )
     lik = Likelihood(model, table, space)
-    lik.log_prob(np.atleast_2d(space.to_internal([0.5, 0.3, 0.2, 0.8, 0.6, 0.4, 0.2, 1.5, 0.01])))
 
     t0 = time.perf_counter()
     lsq = fit_least_squares(lik, seed=args.seed)
     t_lsq = time.perf_counter() - t0
     scale = np.sqrt(np.clip(np.diag(lsq.cov), 1e-12, None)) if lsq.cov is not None else None
     x0 = lsq.x.copy()
-    x0[space.index("discrepancy")] = np.log(2e-4)
+    if not args.no_discrepancy:
+        x0[space.index("discrepancy")] = np.log(2e-4)
     lo, hi = space.bounds
     res = run_mcmc(
         lik.log_prob,
@@ -101,6 +109,7 @@ def main(argv: list[str] | None = None) -> dict:
         rng=args.seed,
         scale=scale,
         target_ess=args.target_ess,
+        moves=args.moves,
     )
     per_step_vec = res.wall_time_s / res.iterations
 
@@ -120,6 +129,8 @@ def main(argv: list[str] | None = None) -> dict:
     per_step_base = (time.perf_counter() - t0) / args.baseline_steps
     out = {
         "rows": len(table),
+        "names": " ".join(space.names),
+        "tau": " ".join(f"{t:.0f}" for t in res.tau),
         "parameters": space.ndim,
         "walkers": args.walkers,
         "lsq_s": t_lsq,

@@ -4,7 +4,8 @@ Steps: build the parameter space (per-channel ``kd_R``…, shared ``m`` and Fres
 the likelihood, a robust multi-start least-squares fit, the discrepancy start value by a 1-D
 maximisation of the likelihood at the LSQ optimum, then emcee from a ball around that point.
 Without MCMC the percentiles come from the Laplace approximation N(x̂, C_LSQ) in the sampled
-space (so log parameters get log-normal intervals).
+space (so log parameters get log-normal intervals), C inflated by max(1, χ²/dof) when the
+discrepancy term is on.
 
 Goodness (at the MAP θ̂, over the uncensored samples): χ² = Σ((f − f̂)/σ)² with σ the
 measurement error only, dof = n − k, AIC = 2k − 2 ln L̂, BIC = k ln n − 2 ln L̂ (ln L̂ the full
@@ -13,6 +14,8 @@ likelihood, discrepancy term included), k the number of free parameters.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import time
 from collections.abc import Mapping, Sequence
@@ -64,6 +67,23 @@ def _best_discrepancy(lik: Likelihood, x: np.ndarray) -> np.ndarray:
     x = x.copy()
     x[i] = grid[int(np.argmax(lp))] if np.any(np.isfinite(lp)) else grid[0]
     return x
+
+
+def _fingerprint(lik: Likelihood, model_name, options, kind, nu, censor) -> str:
+    """SHA-256 of what defines the posterior: data, model, options, parameter space."""
+    h = hashlib.sha256()
+    h.update(
+        json.dumps([model_name, options, kind, nu, censor], sort_keys=True, default=str).encode()
+    )
+    h.update(
+        json.dumps(
+            [lik.space.names, lik.space.fixed, [s.internal_bounds for s in lik.space.specs]]
+        ).encode()
+    )
+    for d in lik.data:
+        for a in (d.wi, d.wo, d.f, d.sigma, d.kind):
+            h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
 
 
 def fit_samples(
@@ -135,6 +155,7 @@ def fit_samples(
         if lsq.cov is not None:
             scale = np.sqrt(np.clip(np.diag(lsq.cov), 0, None))
             scale = np.where(scale > 0, scale, 1e-3)
+        fingerprint = _fingerprint(lik, model_name, options, likelihood, nu, censor)
         runs = []
         for e in range(max(1, int(ensembles))):
             h5 = None
@@ -155,6 +176,7 @@ def fit_samples(
                     progress=progress,
                     moves=moves,
                     target_ess=target_ess,
+                    fingerprint=fingerprint,
                 )
             )
         res = runs[0]
@@ -187,6 +209,12 @@ def fit_samples(
             i_disc = [i for i, s in enumerate(space.specs) if s.base == DISCREPANCY[0]]
             for i in i_disc:  # not constrained by LSQ: keep it at its point value
                 cov[i, :] = cov[:, i] = 0
+            if i_disc and weighting == "sigma":
+                # With a discrepancy term σ is not trusted alone: inflate by χ²/dof ≥ 1
+                # (the usual Birge-ratio correction) so the Laplace interval is not
+                # overconfident when the model does not fit.
+                r = lik.residuals(x_lsq, "sigma")
+                cov *= max(1.0, float(np.sum(r**2)) / max(lik.n_exact - space.ndim, 1))
             draws = rng.multivariate_normal(x_lsq, cov, size=4000, method="eigh")
             draws = np.clip(draws, lo, hi)
         else:

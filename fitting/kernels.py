@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -67,6 +68,13 @@ _P_COLS = 10
 # Below this many (set × sample) evaluations the serial kernels are used: launching the
 # thread pool costs microseconds when idle but milliseconds when the cores are oversubscribed.
 PARALLEL_MIN_WORK = 65536
+
+
+def _use_threads(work: int) -> bool:
+    # One numba thread (numba.set_num_threads(1), e.g. on an oversubscribed machine where the
+    # OpenMP barrier is slow) or a small problem: run the serial twin of the kernel.
+    return work >= PARALLEL_MIN_WORK and numba.get_num_threads() > 1
+
 
 # Samples per parallel work item: long enough to amortise the scheduling, short enough to
 # balance two cores for W = 1.
@@ -174,7 +182,7 @@ def _microfacet_geometry_ser(wi, wo):
     return geo
 
 
-def microfacet_geometry(wi, wo):
+def microfacet_geometry(wi, wo, parallel=None):
     """Per-pair geometry table (9, N), column-major so that the stage loops read contiguously:
     valid, cos θ_i, cos θ_o, sin θ_i, sin θ_o, tan²θ_h, ω·h, cos θ_h and the V-cavity
     G/(4 cos θ_i cos θ_o).
@@ -184,7 +192,9 @@ def microfacet_geometry(wi, wo):
     The V-cavity term does not depend on m, so it is computed here once per pair:
     G/(4 ci co) = min{1/(4 ci co), ch/(2 vh ci), ch/(2 vh co)}, finite as either cosine → 0.
     """
-    if wi.shape[0] >= PARALLEL_MIN_WORK:
+    if parallel is None:
+        parallel = _use_threads(wi.shape[0])
+    if parallel:
         return _microfacet_geometry_par(wi, wo)
     return _microfacet_geometry_ser(wi, wo)
 
@@ -518,7 +528,7 @@ def torrance_sparrow(geo, pt, dist, shadow, fresnel, log_out, out):
     Work items are (set, chunk of samples); inside one, D, G and F are computed in separate
     simple loops (stages) that LLVM can vectorise, then combined.
     """
-    if out.size >= PARALLEL_MIN_WORK:
+    if _use_threads(out.size):
         _ts_par(geo, pt, dist, shadow, fresnel, log_out, out)
     else:
         _ts_ser(geo, pt, dist, shadow, fresnel, log_out, out)
@@ -545,7 +555,7 @@ def _ts_per_sample_ser(geo, pt, dist, shadow, fresnel, log_out, out):
 def torrance_sparrow_per_sample(geo, pt, dist, shadow, fresnel, log_out, out):
     """As :func:`torrance_sparrow` but with a parameter table of W·N rows (row w·N + j), for
     parameters that vary per sample as well as per set (scalar loop, no staging)."""
-    if out.size >= PARALLEL_MIN_WORK:
+    if _use_threads(out.size):
         _ts_per_sample_par(geo, pt, dist, shadow, fresnel, log_out, out)
     else:
         _ts_per_sample_ser(geo, pt, dist, shadow, fresnel, log_out, out)
@@ -587,10 +597,12 @@ def _lobe_geometry_ser(wi, wo, kind):
     return geo
 
 
-def lobe_geometry(wi, wo, kind):
+def lobe_geometry(wi, wo, kind, parallel=None):
     """Per-pair table (2, N): valid, log base, with base = l̂·r̂ = 2 cos θ_i cos θ_o − ω_i·ω_o
     (Phong; symmetric in ω_i, ω_o) or cos θ_h (Blinn-Phong), clamped to ≤ 1; log 0 = −inf."""
-    if wi.shape[0] >= PARALLEL_MIN_WORK:
+    if parallel is None:
+        parallel = _use_threads(wi.shape[0])
+    if parallel:
         return _lobe_geometry_par(wi, wo, kind)
     return _lobe_geometry_ser(wi, wo, kind)
 
@@ -671,7 +683,7 @@ def lobe(geo, pt, per_sample, log_out, out):
     """f (or log f) of the Phong family for every (set, pair); ``pt`` from
     :func:`lobe_parameter_table` with W rows, or W·N rows (row w·N + j) if ``per_sample``."""
     rs, cs = (out.shape[1], 1) if per_sample else (1, 0)
-    if out.size >= PARALLEL_MIN_WORK:
+    if _use_threads(out.size):
         _lobe_par(geo, pt, rs, cs, log_out, out)
     else:
         _lobe_ser(geo, pt, rs, cs, log_out, out)

@@ -19,7 +19,9 @@
   ``rhat_across`` gives R̂ across independent ensembles when several were run.
 * Resumable: with ``backend_path`` an ``emcee.backends.HDFBackend`` is used; a file that holds
   a chain of the same (W, D) shape is continued (its random state too) up to ``max_steps``
-  total iterations; otherwise it is reset.
+  total iterations; otherwise it is reset. ``fingerprint`` (e.g. a hash of data, model and
+  parameter names) is stored with the chain and must match for a resume, so a chain of a
+  different problem is never continued.
 * Seeding: emcee 3.1.6 draws from a legacy ``RandomState`` that it seeds from numpy's global
   state; we overwrite it from the caller's ``numpy.random.Generator`` so runs are reproducible
   without touching global state.
@@ -133,6 +135,12 @@ def _named_moves(name: str):
     raise ValueError(f"moves {name!r}: use one of {', '.join(MOVES)}")
 
 
+def _stored_fingerprint(backend) -> str | None:
+    with backend.open() as fh:
+        value = fh[backend.name].attrs.get("gonio_fingerprint")
+    return None if value is None else str(value)
+
+
 def run_mcmc(
     log_prob: Callable[[np.ndarray], np.ndarray],
     x0: np.ndarray,
@@ -145,6 +153,7 @@ def run_mcmc(
     scale: np.ndarray | None = None,
     backend_path: str | Path | None = None,
     backend_name: str = "mcmc",
+    fingerprint: str | None = None,
     chunk: int = 100,
     progress: bool = False,
     vectorize: bool = True,
@@ -162,9 +171,17 @@ def run_mcmc(
     resume = False
     if backend_path is not None:
         backend = emcee.backends.HDFBackend(str(backend_path), name=backend_name)
-        resume = backend.initialized and backend.shape == (walkers, ndim) and backend.iteration > 0
+        resume = (
+            backend.initialized
+            and backend.shape == (walkers, ndim)
+            and backend.iteration > 0
+            and _stored_fingerprint(backend) == fingerprint
+        )
         if not resume:
             backend.reset(walkers, ndim)
+            if fingerprint is not None:
+                with backend.open("a") as fh:
+                    fh[backend_name].attrs["gonio_fingerprint"] = fingerprint
     if isinstance(moves, str):
         moves = _named_moves(moves)
     fn = log_prob if vectorize else (lambda x: float(np.asarray(log_prob(x))))

@@ -593,3 +593,34 @@ def test_open_errors_are_device_faults(drv) -> None:
             drv.make()  # exclusive=True: the port is busy
     with pytest.raises(DeviceFault, match="cannot open"):
         DynamixelBus("dxlsim://no-such-bus", clock=drv.clock)
+
+
+@pytest.mark.parametrize("policy", ["stop", "reboot"])
+def test_alert_seen_through_sync_read(drv, policy: str) -> None:
+    dx = drv.make(on_alert=policy)
+    a1, a2 = _axis(dx, 1), _axis(dx, 2)
+    for a in (a1, a2):
+        a.torque(True)
+    drv.bus.inject_alert(2, "overload")
+    if policy == "stop":
+        with pytest.raises(HardwareAlert, match="servo 2.*overload"):
+            read_positions([a1, a2])
+    else:
+        got = read_positions([a1, a2])
+        assert got == pytest.approx([math.pi, math.pi], abs=2 * math.pi / 4096)
+        assert dx.stats["reboots"] == 1
+        assert drv.bus.servo(2).register("torque_enable") == 1
+
+
+def test_stop_holds_present_position(drv) -> None:
+    dx = drv.make()
+    ax = _axis(dx)
+    ax.torque(True)
+    ax.move_to(math.radians(300))
+    drv.clock.advance(0.5)
+    ax.stop()
+    held = drv.bus.servo(1).register("present_position")
+    assert 2048 < held < round(300 / 360 * 4096)  # stopped part-way
+    drv.clock.advance(5.0)
+    ax.wait(timeout_s=1.0)  # already there: the goal is where it stopped
+    assert drv.bus.servo(1).register("present_position") == held

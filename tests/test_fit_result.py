@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import emcee
 import h5py
 import numpy as np
 import pytest
@@ -96,6 +97,11 @@ def test_laplace_without_mcmc_and_discrepancy_reports_mismatch():
     # narrower than with it (σ = 0.1% vs 14% scatter).
     q = res.parameters["kd_R"]
     assert (p["p84"] - p["p16"]) < 0.2 * (q["p84"] - q["p16"])
+    # With the discrepancy on, the Laplace interval is inflated by χ²/dof and lands near the
+    # MCMC one (both describe ~14% scatter per sample; weights differ slightly: factor 2).
+    lap2 = fit_samples(table, "lambert", mcmc=False, seed=2)
+    w2 = lap2.parameters["kd_R"]["p84"] - lap2.parameters["kd_R"]["p16"]
+    assert 0.5 < w2 / (q["p84"] - q["p16"]) < 2.0
 
 
 def test_parameter_naming_shared_and_fixed():
@@ -161,3 +167,20 @@ def test_two_ensembles_rhat_and_time_budget(tmp_path):
     quick = fit_samples(table, "lambert", steps=100_000, walkers=16, seed=6, time_budget_s=0.0)
     assert quick.diagnostics["stop_reason"] == "time_budget"
     assert quick.diagnostics["converged"] is False
+
+
+def test_fit_resume_continues_only_the_same_problem(tmp_path):
+    rng = np.random.default_rng(7)
+    table = lambert_table(rng, n=80)
+    kw = {"walkers": 16, "seed": 8, "out_dir": tmp_path, "moves": "stretch"}
+    fit_samples(table, "lambert", steps=200, **kw)
+    first = emcee.backends.HDFBackend(str(tmp_path / "fit-lambert.h5"), read_only=True)
+    chain0 = first.get_chain()
+    second = fit_samples(table, "lambert", steps=400, **kw)
+    after = emcee.backends.HDFBackend(str(tmp_path / "fit-lambert.h5"), read_only=True)
+    assert after.iteration == second.extras["mcmc"].iterations == 400
+    np.testing.assert_array_equal(after.get_chain()[:200], chain0)
+    # Different data → different fingerprint → a fresh chain, not a continuation.
+    other = lambert_table(np.random.default_rng(9), n=80)
+    third = fit_samples(other, "lambert", steps=150, **kw)
+    assert third.extras["mcmc"].iterations == 150

@@ -220,3 +220,15 @@ def test_hdf_resume_continues_chain(tmp_path):
         log_prob, np.zeros(2), bounds=b, walkers=10, max_steps=50, rng=3, backend_path=path
     )
     assert third.iterations == 50
+
+
+def test_seeded_runs_are_reproducible():
+    def log_prob(x):
+        return -0.5 * np.sum(np.atleast_2d(x) ** 2, axis=1)
+
+    b = (np.full(2, -10.0), np.full(2, 10.0))
+    runs = [
+        run_mcmc(log_prob, np.zeros(2), bounds=b, walkers=8, max_steps=60, rng=s) for s in (4, 4, 5)
+    ]
+    np.testing.assert_array_equal(runs[0].chain, runs[1].chain)
+    assert not np.array_equal(runs[0].chain, runs[2].chain)

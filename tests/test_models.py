@@ -202,16 +202,25 @@ def test_lobe_kernels_match_reference(name):
 
 def test_large_problem_uses_parallel_kernels_identically():
     # Above PARALLEL_MIN_WORK the parallel kernels run; they must give the serial results.
-    wi, wo = pairs(kernels.PARALLEL_MIN_WORK // 8 + 7, seed=8)
-    model = models.get("torrance-sparrow", shadowing="smith-rational", fresnel="conductor")
+    n = kernels.PARALLEL_MIN_WORK // 8 + 7
+    wi, wo = pairs(n, seed=8)
     rng = np.random.default_rng(9)
-    sets = {k: v * rng.uniform(0.5, 1.5, (16, 1)) for k, v in params_for(model).items()}
-    big = model.evaluate(sets, wi, wo)
-    rows = np.stack(
-        [model.evaluate({k: v[i, 0] for k, v in sets.items()}, wi, wo) for i in range(2)]
-    )
-    np.testing.assert_array_equal(big[:2], rows)
-    _compare(model, {k: v[:3] for k, v in sets.items()}, wi[:5000], wo[:5000])
+    for name, opts in [
+        ("torrance-sparrow", {"shadowing": "smith-rational", "fresnel": "conductor"}),
+        ("phong", {}),
+    ]:
+        model = models.get(name, **opts)
+        sets = {k: v * rng.uniform(0.5, 1.5, (16, 1)) for k, v in params_for(model).items()}
+        for fn in (model.evaluate, model.log_evaluate):
+            big = fn(sets, wi, wo)
+            rows = np.stack([fn({k: v[i, 0] for k, v in sets.items()}, wi, wo) for i in range(2)])
+            np.testing.assert_array_equal(big[:2], rows)
+            # per-sample parameters: the parallel (W·N-row table) path against the serial one
+            ps = dict(sets, ks=sets["ks"] * rng.uniform(0.5, 1, (16, n)))
+            big = fn(ps, wi, wo)
+            rows = np.stack([fn({k: v[i] for k, v in ps.items()}, wi, wo) for i in range(2)])
+            np.testing.assert_array_equal(big[:2], rows)
+        _compare(model, {k: v[:3] for k, v in sets.items()}, wi[:3000], wo[:3000])
 
 
 def test_kernel_exp_against_numpy():

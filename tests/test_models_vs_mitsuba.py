@@ -17,14 +17,13 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 import pytest
 
 from fitting import models
 from fitting.directions import reflect, spherical_to_vector, uniform_hemisphere
-
-mi = pytest.importorskip("mitsuba")
-import drjit as dr  # noqa: E402
 
 ETA, K = 0.2004, 3.9129  # copper, red channel (DESIGN §6)
 

@@ -8,8 +8,9 @@ handler) move those bytes.
 
 Instructions: PING (unicast and broadcast, replies in ID order), READ, WRITE, REG_WRITE,
 ACTION, REBOOT, SYNC_READ (replies in the order of the IDs in the instruction), SYNC_WRITE,
-BULK_READ, BULK_WRITE, and FAST_SYNC_READ (one shared status packet). Broadcast (FE) writes get no reply. Status Return Level (68) is
-honoured: 0 = only PING replies, 1 = PING and reads, 2 = all.
+BULK_READ, BULK_WRITE, and FAST_SYNC_READ (one shared status packet). Broadcast (FE) writes
+get no reply. Status Return Level (68) is honoured: 0 = only PING replies, 1 = PING and
+reads, 2 = all.
 
 Ground truth for the simulated camera: `bus.servo(id).true_position_ticks()` (Present
 Position plus any injected position offset), or `bus.true_positions_ticks()` for all.
