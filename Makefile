@@ -12,8 +12,9 @@ setup: $(STAMP) llvm
 # Reinstall only when the dependency list changes.
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	@# The pip config on some machines lists absent local indexes; hide only those warnings.
+	set -o pipefail; $(BIN)/python -m pip install --quiet --upgrade pip 2>&1 | { grep -v "^WARNING: Location" || true; }
+	set -o pipefail; $(BIN)/python -m pip install --quiet -e '.[dev]' 2>&1 | { grep -v "^WARNING: Location" || true; }
 	@touch $(STAMP)
 
 # Mitsuba's llvm_ad_rgb variant needs libLLVM >= 17 (15/16 abort the process). Debian 12 ships

@@ -94,12 +94,21 @@ class LightConfig(_Strict):
 
 class CameraConfig(_Strict):
     backend: str = Field("sim", description='"sim", "folder" or "gphoto2"')
-    folder: str | None = None
+    folder: str | None = Field(None, description='"folder": where the tethering tool writes')
+    trigger_command: tuple[str, ...] | None = Field(
+        None, description='"folder": argv run per frame; "{exposure_s}" is replaced'
+    )
+    timeout_s: float = Field(30.0, gt=0, le=3600, description="wait for a frame, wall time")
     readout_s: float = Field(0.05, ge=0, description="lab time per frame beyond the exposure")
 
 
 class GeometryConfig(_Strict):
-    preset: Literal["two-arm"] = "two-arm"
+    """`two-arm`: light and camera each on a spherical arm (elevation + azimuth axes).
+    `inplane`: the light arm swings in one vertical plane on its side of the normal, the camera
+    arm in the same plane with a signed angle (positive = across the normal from the light,
+    the specular side), and an optional turntable (`sample_azimuth`) turns the sample."""
+
+    preset: Literal["two-arm", "inplane"] = "two-arm"
     light_distance_m: float = Field(0.5, gt=0, le=10)
     camera_distance_m: float = Field(0.5, gt=0, le=10)
     min_separation_deg: float = Field(5.0, ge=0, le=90, description="light–camera occlusion")
@@ -129,8 +138,18 @@ class RigConfig(_Strict):
         if duprole:
             raise ValueError(f"duplicate axis role {duprole[0]!r} in [[axes]]")
         need = {"light_theta", "light_phi", "camera_theta", "camera_phi"}
-        if self.geometry.preset == "two-arm" and not need <= set(roles):
-            raise ValueError(f"the two-arm preset needs axes with roles {sorted(need)}")
+        if self.geometry.preset == "inplane":
+            need = {"light_theta", "camera_theta"}
+            extra = set(roles) - need - {"sample_azimuth"}
+            if extra:
+                raise ValueError(
+                    f"the inplane preset has no {sorted(extra)[0]!r} axis (roles: light_theta, "
+                    "camera_theta, optional sample_azimuth)"
+                )
+        if not need <= set(roles):
+            raise ValueError(
+                f"the {self.geometry.preset} preset needs axes with roles {sorted(need)}"
+            )
         return self
 
     def axis(self, role: str) -> AxisConfig:
@@ -141,14 +160,35 @@ class RigConfig(_Strict):
 
 
 class PlanConfig(_Strict):
-    """A sampling plan. `isotropic`: every (θ_i, θ_o, Δφ) combination with φ_i = 0 and
-    φ_o = Δφ (Δφ = 180° is the plane of incidence, specular side)."""
+    """A sampling plan (angles in degrees; φ from +x toward +y).
+
+    - `isotropic`: every (θ_i, θ_o, Δφ) with φ_i = 0 and φ_o = Δφ (Δφ = 180° is the plane of
+      incidence, specular side).
+    - `inplane`: θ_i × θ_o in the plane of incidence, on the specular side (φ_o = 180°) and,
+      with `both_sides`, the retro side (φ_o = 0°); θ_o = 0 is measured once.
+    - `hemisphere`: every (θ_i, φ_i, θ_o, φ_o) of the four lists; a θ list may be replaced by
+      `theta_step_deg` (0, step, ... ≤ `theta_max_deg`) and a φ list by `phi_step_deg`
+      (0, step, ... < 360). At θ = 0 the azimuth is meaningless, so those poses appear once.
+    - `rusinkiewicz`: every (θ_h, θ_d, φ_d) with φ_h = 0 (isotropic BRDF), converted to
+      (ω_i, ω_o) by fitting.rusinkiewicz.from_half_diff; poses below the horizon or beyond the
+      rig's reach are skipped with their reason.
+    - `explicit`: the (θ_i, φ_i, θ_o, φ_o) list `poses_deg`.
+    """
 
     name: str = "plan"
-    type: Literal["isotropic", "explicit"] = "isotropic"
+    type: Literal["isotropic", "explicit", "hemisphere", "inplane", "rusinkiewicz"] = "isotropic"
     theta_i_deg: tuple[float, ...] = ()
     theta_o_deg: tuple[float, ...] = ()
     delta_phi_deg: tuple[float, ...] = (180.0,)
+    phi_i_deg: tuple[float, ...] = ()
+    phi_o_deg: tuple[float, ...] = ()
+    theta_step_deg: float | None = Field(None, gt=0, le=90)
+    theta_max_deg: float = Field(80.0, gt=0, lt=90)
+    phi_step_deg: float | None = Field(None, gt=0, le=360)
+    both_sides: bool = Field(True, description="inplane: also the retro side (φ_o = φ_i)")
+    theta_h_deg: tuple[float, ...] = ()
+    theta_d_deg: tuple[float, ...] = ()
+    phi_d_deg: tuple[float, ...] = ()
     poses_deg: tuple[tuple[float, float, float, float], ...] = Field(
         (), description="explicit (θ_i, φ_i, θ_o, φ_o) list"
     )
@@ -158,7 +198,7 @@ class PlanConfig(_Strict):
         True, description="drop grid poses the rig cannot reach (explicit poses always error)"
     )
 
-    @field_validator("theta_i_deg", "theta_o_deg")
+    @field_validator("theta_i_deg", "theta_o_deg", "theta_h_deg", "theta_d_deg")
     @classmethod
     def _theta(cls, v: tuple[float, ...]) -> tuple[float, ...]:
         for t in v:
@@ -166,7 +206,7 @@ class PlanConfig(_Strict):
                 raise ValueError(f"angle {t} out of range [0, 90) deg")
         return v
 
-    @field_validator("delta_phi_deg")
+    @field_validator("delta_phi_deg", "phi_i_deg", "phi_o_deg", "phi_d_deg")
     @classmethod
     def _phi(cls, v: tuple[float, ...]) -> tuple[float, ...]:
         for p in v:
@@ -184,8 +224,19 @@ class PlanConfig(_Strict):
 
     @model_validator(mode="after")
     def _content(self) -> PlanConfig:
-        if self.type == "isotropic" and not (self.theta_i_deg and self.theta_o_deg):
-            raise ValueError("an isotropic plan needs theta_i_deg and theta_o_deg lists")
+        if self.type in ("isotropic", "inplane") and not (self.theta_i_deg and self.theta_o_deg):
+            raise ValueError(f"an {self.type} plan needs theta_i_deg and theta_o_deg lists")
+        if self.type == "hemisphere":
+            for key in ("theta_i_deg", "theta_o_deg"):
+                if not getattr(self, key) and self.theta_step_deg is None:
+                    raise ValueError(f"a hemisphere plan needs {key} or theta_step_deg")
+            for key in ("phi_i_deg", "phi_o_deg"):
+                if not getattr(self, key) and self.phi_step_deg is None:
+                    raise ValueError(f"a hemisphere plan needs {key} or phi_step_deg")
+        if self.type == "rusinkiewicz" and not (
+            self.theta_h_deg and self.theta_d_deg and self.phi_d_deg
+        ):
+            raise ValueError("a rusinkiewicz plan needs theta_h_deg, theta_d_deg and phi_d_deg")
         if self.type == "explicit" and not self.poses_deg:
             raise ValueError("an explicit plan needs poses_deg")
         for pose in self.poses_deg:

@@ -4,6 +4,14 @@ pose impossible (arm limits, light–camera occlusion).
 Preset "two-arm": two spherical arms centred on the sample. The light arm carries the source at
 `light_distance_m`, the camera arm the camera at `camera_distance_m`; each arm has an elevation
 axis (θ from the sample normal) and an azimuth axis (φ from +x toward +y).
+
+Preset "inplane": both arms swing in the lab's x–z plane. The light arm is at lab azimuth 0
+with elevation `light_theta` ≥ 0; the camera arm has a signed elevation `camera_theta`:
+positive is across the normal from the light (lab azimuth π, the specular side), negative on
+the light's side (lab azimuth 0). An optional turntable `sample_azimuth` = α turns the sample
+about its normal by α, so a lab azimuth φ_L is the sample-frame azimuth φ_L − α. Such a rig
+reaches exactly the poses with Δφ = φ_o − φ_i ∈ {0, π} (or θ_i = 0 / θ_o = 0), and, without a
+turntable, only φ_i = 0.
 """
 
 from __future__ import annotations
@@ -78,6 +86,46 @@ class Kinematics:
 
     def targets(self, pose: Pose) -> dict[str, float]:
         """Axis targets in radians for a pose, or Unreachable."""
+        self._check_common(pose)
+        if self.geometry.preset == "inplane":
+            return self._inplane_targets(pose)
+        return {
+            "light_theta": self._fit_angle("light_theta", pose.theta_i, periodic=False),
+            "light_phi": self._fit_angle("light_phi", pose.phi_i, periodic=True),
+            "camera_theta": self._fit_angle("camera_theta", pose.theta_o, periodic=False),
+            "camera_phi": self._fit_angle("camera_phi", pose.phi_o, periodic=True),
+        }
+
+    def _inplane_targets(self, pose: Pose) -> dict[str, float]:
+        eps = 1e-9
+        if pose.theta_i <= eps:  # the light on the normal: turn the sample to the camera
+            alpha, sign = math.pi - pose.phi_o, 1.0
+        else:
+            alpha = -pose.phi_i
+            dphi = (pose.phi_o - pose.phi_i) % TWO_PI
+            if pose.theta_o <= eps or abs(dphi - math.pi) <= 1e-7:
+                sign = 1.0
+            elif min(dphi, TWO_PI - dphi) <= 1e-7:
+                sign = -1.0
+            else:
+                raise Unreachable(
+                    f"an in-plane rig measures only Δφ = 0 or 180 deg "
+                    f"(got Δφ = {math.degrees(dphi):.2f} deg)"
+                )
+        out = {
+            "light_theta": self._fit_angle("light_theta", pose.theta_i, periodic=False),
+            "camera_theta": self._fit_angle("camera_theta", sign * pose.theta_o, periodic=False),
+        }
+        if "sample_azimuth" in self.limits:
+            out["sample_azimuth"] = self._fit_angle("sample_azimuth", alpha, periodic=True)
+        elif abs(math.remainder(alpha, TWO_PI)) > 1e-9:
+            raise Unreachable(
+                f"φ_i = {math.degrees(pose.phi_i):.2f} deg needs a turntable "
+                "(no sample_azimuth axis)"
+            )
+        return out
+
+    def _check_common(self, pose: Pose) -> None:
         g = self.geometry
         max_theta = math.radians(g.max_theta_deg)
         for label, theta in (("theta_i", pose.theta_i), ("theta_o", pose.theta_o)):
@@ -86,20 +134,26 @@ class Kinematics:
                     f"{label} = {math.degrees(theta):.2f} deg is outside 0..{g.max_theta_deg} deg"
                 )
         sep = math.degrees(_angle_between(pose.wi, pose.wo))
-        if sep < g.min_separation_deg:
+        # 1e-9 deg of slack: a grid pose exactly at the limit (e.g. 15° vs 10° on the same
+        # side) must not be rejected by rounding in the vector arithmetic.
+        if sep < g.min_separation_deg - 1e-9:
             raise Unreachable(
                 f"light and camera {sep:.2f} deg apart, closer than min_separation_deg = "
                 f"{g.min_separation_deg} (the light would occlude the camera)"
             )
-        return {
-            "light_theta": self._fit_angle("light_theta", pose.theta_i, periodic=False),
-            "light_phi": self._fit_angle("light_phi", pose.phi_i, periodic=True),
-            "camera_theta": self._fit_angle("camera_theta", pose.theta_o, periodic=False),
-            "camera_phi": self._fit_angle("camera_phi", pose.phi_o, periodic=True),
-        }
 
     # -- axes → pose and positions -------------------------------------------------------------
     def pose(self, axes_rad: dict[str, float]) -> Pose:
+        if self.geometry.preset == "inplane":
+            alpha = axes_rad.get("sample_azimuth", 0.0)
+            cam = axes_rad["camera_theta"]
+            phi_lab = math.pi if cam >= 0 else 0.0
+            return Pose(
+                axes_rad["light_theta"],
+                (-alpha) % TWO_PI,
+                abs(cam),
+                (phi_lab - alpha) % TWO_PI,
+            )
         return Pose(
             axes_rad["light_theta"],
             axes_rad["light_phi"] % TWO_PI,

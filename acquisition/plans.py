@@ -12,7 +12,15 @@ from acquisition.config import PlanConfig, RigConfig
 from acquisition.kinematics import Kinematics, Pose, Unreachable
 from acquisition.motion import move_time_s
 
-__all__ = ["PlannedPose", "Plan", "build_plan", "order_poses", "tour_time_s"]
+__all__ = [
+    "PlannedPose",
+    "Plan",
+    "build_plan",
+    "expand_grid",
+    "order_poses",
+    "park_targets",
+    "tour_time_s",
+]
 
 
 @dataclass(frozen=True)
@@ -37,13 +45,88 @@ class Plan:
         return self.move_time_s + self.exposure_time_s + n * per_pose
 
 
-def _grid(cfg: PlanConfig) -> list[tuple[float, float, float, float]]:
+Deg4 = tuple[float, float, float, float]
+
+
+def _steps(step: float, stop: float, inclusive: bool) -> tuple[float, ...]:
+    n = int(math.floor(stop / step + 1e-9))
+    vals = [round(k * step, 9) for k in range(n + 1)]
+    return tuple(v for v in vals if v < stop - 1e-9 or (inclusive and v <= stop + 1e-9))
+
+
+def _unique_directions(poses: list[Deg4]) -> list[Deg4]:
+    """Drop poses that repeat an earlier one: at θ = 0 every φ is the same direction (pole),
+    and φ is taken mod 360°. Order is kept, so pose indices stay stable."""
+    seen: set[tuple[float, float, float, float]] = set()
+    out = []
+    for ti, pi, to, po in poses:
+        key = (
+            round(ti, 9),
+            0.0 if ti == 0 else round(pi % 360.0, 9),
+            round(to, 9),
+            0.0 if to == 0 else round(po % 360.0, 9),
+        )
+        if key not in seen:
+            seen.add(key)
+            out.append((ti, pi, to, po))
+    return out
+
+
+def _rusinkiewicz(cfg: PlanConfig) -> list[Deg4]:
+    """(θ_h, θ_d, φ_d) grid, φ_h = 0 → (θ_i, φ_i, θ_o, φ_o) through Rusinkiewicz's change of
+    variables (fitting.rusinkiewicz.from_half_diff, Rusinkiewicz 1998 §3). A direction below
+    the horizon comes out with θ ≥ 90° and is later skipped as unreachable, with its reason."""
+    from fitting.directions import vector_to_spherical
+    from fitting.rusinkiewicz import from_half_diff
+
+    grid = np.array(list(itertools.product(cfg.theta_h_deg, cfg.theta_d_deg, cfg.phi_d_deg)))
+    wi, wo = from_half_diff(*np.radians(grid.T))
+    ti, pi = vector_to_spherical(wi)
+    to, po = vector_to_spherical(wo)
+    deg = np.degrees(np.stack([ti, pi % (2 * np.pi), to, po % (2 * np.pi)], axis=-1))
+    # Round off float noise (1e-9 deg) so a pole is exactly θ = 0 and duplicates are found.
+    deg = np.round(deg, 9)
+    return _unique_directions([tuple(float(a) for a in row) for row in deg])
+
+
+def _grid(cfg: PlanConfig) -> list[Deg4]:
     if cfg.type == "explicit":
         return [tuple(p) for p in cfg.poses_deg]
+    if cfg.type == "inplane":
+        sides = (180.0, 0.0) if cfg.both_sides else (180.0,)
+        return _unique_directions(
+            [
+                (ti, 0.0, to, side)
+                for ti, side, to in itertools.product(cfg.theta_i_deg, sides, cfg.theta_o_deg)
+            ]
+        )
+    if cfg.type == "hemisphere":
+        thetas = _steps(cfg.theta_step_deg or 90.0, cfg.theta_max_deg, inclusive=True)
+        phis = _steps(cfg.phi_step_deg or 360.0, 360.0, inclusive=False)
+        return _unique_directions(
+            list(
+                itertools.product(
+                    cfg.theta_i_deg or thetas,
+                    cfg.phi_i_deg or phis,
+                    cfg.theta_o_deg or thetas,
+                    cfg.phi_o_deg or phis,
+                )
+            )
+        )
+    if cfg.type == "rusinkiewicz":
+        return _rusinkiewicz(cfg)
+    # isotropic: kept exactly as first defined (no de-duplication), so indices of existing
+    # runs stay valid on resume.
     return [
         (ti, 0.0, to, dp % 360.0)
         for ti, to, dp in itertools.product(cfg.theta_i_deg, cfg.theta_o_deg, cfg.delta_phi_deg)
     ]
+
+
+def expand_grid(cfg: PlanConfig) -> list[Deg4]:
+    """The plan's poses (θ_i, φ_i, θ_o, φ_o) in degrees, in expansion order (index = position),
+    before reachability checks."""
+    return _grid(cfg)
 
 
 def _vector(targets: dict[str, float], roles: list[str]) -> np.ndarray:
@@ -51,14 +134,23 @@ def _vector(targets: dict[str, float], roles: list[str]) -> np.ndarray:
 
 
 def tour_time_s(rig: RigConfig, vectors: np.ndarray, start: np.ndarray | None = None) -> float:
-    axes = {a.role: a for a in rig.axes if a.role in _ROLES}
+    axes = {r: rig.axis(r) for r in _roles(rig)}
     legs = move_time_s(axes, vectors[:-1], vectors[1:]).sum()
     if start is not None and len(vectors):
         legs += float(move_time_s(axes, start, vectors[0]))
     return float(legs)
 
 
-_ROLES = ["light_theta", "light_phi", "camera_theta", "camera_phi"]
+_MOVED = {
+    "two-arm": ("light_theta", "light_phi", "camera_theta", "camera_phi"),
+    "inplane": ("light_theta", "camera_theta", "sample_azimuth"),
+}
+
+
+def _roles(rig: RigConfig) -> list[str]:
+    """Axes a pose moves, in the rig's [[axes]] order (so vectors and `axes` dicts agree)."""
+    moved = _MOVED[rig.geometry.preset]
+    return [a.role for a in rig.axes if a.role in moved]
 
 
 def order_poses(rig: RigConfig, vectors: np.ndarray, start: np.ndarray) -> list[int]:
@@ -67,7 +159,7 @@ def order_poses(rig: RigConfig, vectors: np.ndarray, start: np.ndarray) -> list[
     n = len(vectors)
     if n <= 2:
         return list(range(n))
-    axes = {a.role: a for a in rig.axes if a.role in _ROLES}
+    axes = {r: rig.axis(r) for r in _roles(rig)}
     cost = move_time_s(axes, vectors[:, None, :], vectors[None, :, :])
     start_cost = move_time_s(axes, start[None, :], vectors)
     # Nearest neighbour.
@@ -121,11 +213,12 @@ def build_plan(rig: RigConfig, cfg: PlanConfig, start_rad: dict[str, float] | No
         poses.append(PlannedPose(len(poses), pose, targets))
     if not poses:
         raise Unreachable("no pose of the plan is reachable by this rig")
-    vectors = np.array([_vector(p.targets, _ROLES) for p in poses])
+    roles = _roles(rig)
+    vectors = np.array([_vector(p.targets, roles) for p in poses])
     if start_rad is None:
-        start = np.array([_park(rig, r) for r in _ROLES])
+        start = np.array([_park(rig, r) for r in roles])
     else:
-        start = _vector(start_rad, _ROLES)
+        start = _vector(start_rad, roles)
     raster = tour_time_s(rig, vectors, start)
     if cfg.order == "nearest":
         order = order_poses(rig, vectors, start)
@@ -136,10 +229,19 @@ def build_plan(rig: RigConfig, cfg: PlanConfig, start_rad: dict[str, float] | No
     return Plan(cfg, poses, skipped, moves, raster, exposure)
 
 
+_PERIODIC = {"light_phi", "camera_phi", "sample_azimuth"}
+
+
 def _park(rig: RigConfig, role: str) -> float:
     a = rig.axis(role)
-    deg = a.park_deg if a.park_deg is not None else min(max(0.0, a.min_deg), a.max_deg)
-    return math.radians(deg)
+    deg = a.park_deg if a.park_deg is not None else 0.0
+    if role in _PERIODIC and not a.min_deg <= deg <= a.max_deg:
+        # An azimuth is periodic: 180° parks at −180° on an axis limited to [−180, 179.9].
+        for k in (-1, 1, -2, 2):
+            if a.min_deg <= deg + 360.0 * k <= a.max_deg:
+                deg += 360.0 * k
+                break
+    return math.radians(min(max(deg, a.min_deg), a.max_deg))
 
 
 def park_targets(rig: RigConfig) -> dict[str, float]:

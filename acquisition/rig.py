@@ -18,7 +18,7 @@ from acquisition.config import RigConfig
 from acquisition.kinematics import Kinematics
 from acquisition.protocols import Axis, Camera, LightSource
 
-__all__ = ["Rig", "CAMERA_BACKENDS", "register_camera_backend", "build_rig"]
+__all__ = ["Rig", "CAMERA_BACKENDS", "register_camera_backend", "build_rig", "clear_alerts"]
 
 CameraFactory = Callable[[RigConfig, Clock], Camera]
 CAMERA_BACKENDS: dict[str, CameraFactory] = {}
@@ -26,6 +26,22 @@ CAMERA_BACKENDS: dict[str, CameraFactory] = {}
 
 def register_camera_backend(name: str, factory: CameraFactory) -> None:
     CAMERA_BACKENDS[name] = factory
+
+
+def _folder(config: RigConfig, clock: Clock) -> Camera:
+    from acquisition.cameras import folder_camera
+
+    return folder_camera(config, clock)
+
+
+def _gphoto2(config: RigConfig, clock: Clock) -> Camera:
+    from acquisition.cameras import gphoto2_camera  # python-gphoto2 is imported only here
+
+    return gphoto2_camera(config, clock)
+
+
+register_camera_backend("folder", _folder)
+register_camera_backend("gphoto2", _gphoto2)
 
 
 @dataclass
@@ -39,6 +55,7 @@ class Rig:
     closers: list[Callable[[], None]] = field(default_factory=list)
     move_together: Callable[[dict[str, float]], None] | None = None
     read_positions: Callable[[], dict[str, float]] | None = None
+    recovered: list[str] = field(default_factory=list)  # alerts cleared when the rig was built
 
     def move(self, targets: dict[str, float]) -> None:
         """Start all axes toward their targets at once (sync write when the bus has it)."""
@@ -49,8 +66,9 @@ class Rig:
                 self.axes[role].move_to(angle)
 
     def wait(self, timeout_s: float) -> None:
-        for ax in self.axes.values():
-            ax.wait(timeout_s)
+        """Wait for every axis; an axis that fails does not stop the others being waited for
+        (a safe stop parks whatever still moves). The first failure is raised afterwards."""
+        _all_then_raise(lambda ax: ax.wait(timeout_s), self.axes.values())
 
     def positions(self) -> dict[str, float]:
         if self.read_positions is not None:
@@ -58,8 +76,13 @@ class Rig:
         return {role: ax.position() for role, ax in self.axes.items()}
 
     def torque(self, enabled: bool) -> None:
-        for ax in self.axes.values():
-            ax.torque(enabled)
+        """Torque on/off on every axis. Off is best effort per axis: a servo that does not
+        answer must not leave the others powered."""
+        if enabled:
+            for ax in self.axes.values():
+                ax.torque(True)
+        else:
+            _all_then_raise(lambda ax: ax.torque(False), self.axes.values())
 
     def device_status(self) -> dict[str, Any]:
         status: dict[str, Any] = {}
@@ -78,8 +101,51 @@ class Rig:
                 pass
 
 
-def build_rig(config: RigConfig) -> Rig:
-    """Open the bus, axes, light and camera named by the config."""
+def _all_then_raise(fn: Callable[[Any], None], items: Any) -> None:
+    first: BaseException | None = None
+    for item in items:
+        try:
+            fn(item)
+        except Exception as exc:
+            first = first or exc
+    if first is not None:
+        raise first
+
+
+def clear_alerts(bus: Any, ids: list[int]) -> list[str]:
+    """Reboot every servo whose Hardware Error Status (reg 70) is set, once.
+
+    Why at rig build: a servo that tripped its shutdown (overload, overheat...) keeps the alert
+    until REBOOT, and answers every later instruction with the alert bit, so a resumed run
+    could not even enable torque. Starting (or resuming) a run is the operator's statement
+    that the cause was removed; if the error is still latched after the reboot, the cause is
+    still there and the rig refuses with the servo and the decoded error. Returns one message
+    per rebooted servo (the runner records them as events).
+    """
+    from acquisition.dynamixel import HardwareAlert, decode_hardware_error
+
+    notes = []
+    for sid in ids:
+        status = bus.hardware_error(sid)
+        if not status:
+            continue
+        names = ", ".join(decode_hardware_error(status)) or f"0x{status:02x}"
+        bus.reboot(sid)
+        bus.clock.sleep(bus.reboot_settle_s)
+        after = bus.hardware_error(sid)
+        if after:
+            raise HardwareAlert(sid, after, "reboot on rig start", note="; still present")
+        notes.append(f"servo {sid}: hardware error [{names}] latched; rebooted, cleared")
+    return notes
+
+
+def build_rig(config: RigConfig, *, reboot_alerted: bool = True) -> Rig:
+    """Open the bus, axes, light and camera named by the config.
+
+    `reboot_alerted`: reboot servos that hold a latched hardware error (see `clear_alerts`)
+    before the axes are set up; profile registers are written afterwards, so a reboot (which
+    resets RAM) loses nothing.
+    """
     from acquisition.dynamixel import DynamixelAxis, DynamixelBus, move_together, read_positions
     from acquisition.light import SerialLight
 
@@ -92,6 +158,15 @@ def build_rig(config: RigConfig) -> Rig:
         clock=clock,
     )
     closers: list[Callable[[], None]] = [bus.close]
+    recovered: list[str] = []
+    if reboot_alerted:
+        try:
+            for a in config.axes:
+                bus.ping(a.id)  # a servo that does not answer fails here with its id
+            recovered = clear_alerts(bus, [a.id for a in config.axes])
+        except Exception:
+            bus.close()
+            raise
     axes: dict[str, DynamixelAxis] = {}
     for a in config.axes:
         axes[a.role] = DynamixelAxis(
@@ -125,6 +200,7 @@ def build_rig(config: RigConfig) -> Rig:
         clock=clock,
         kinematics=Kinematics(config),
         closers=closers,
+        recovered=recovered,
         move_together=lambda targets: move_together(
             [axes[r] for r in targets], [targets[r] for r in targets]
         ),

@@ -100,6 +100,8 @@ def run_acquisition(
     todo = [p for p in plan.poses if any((p.index, b) not in done for b in range(len(exposures)))]
     total = len(plan.poses) * len(exposures)
     store.event("start" if not done else "resume", f"{len(todo)} pose(s) to capture")
+    for note in getattr(rig, "recovered", []):
+        store.event("recover", note)
     clock = rig.clock
     t0 = clock.now()
     captured = 0

@@ -14,7 +14,7 @@ import time
 import numba
 import numpy as np
 
-from fitting import models
+from fitting import kernels, models
 from fitting.directions import uniform_hemisphere
 
 __all__ = ["main", "CASES"]
@@ -44,13 +44,19 @@ _VALUES = {
 
 
 def _best(fn, repeat):
+    """Best wall time and best process CPU time of ``repeat`` calls (after a warm-up call).
+
+    CPU time is the compute cost independent of waiting for a busy machine; with T free cores
+    the parallel wall time approaches CPU time / T.
+    """
     fn()  # compile / load from cache
-    times = []
+    wall, cpu = [], []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return min(wall), min(cpu)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -59,35 +65,46 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--w", type=int, default=64, help="parameter sets W")
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--threads", type=int, default=None, help="numba threads (default all)")
+    ap.add_argument(
+        "--threading",
+        choices=("auto", "parallel", "serial"),
+        default="auto",
+        help="fitting.kernels.set_threading policy",
+    )
     args = ap.parse_args(argv)
     if args.threads:
         numba.set_num_threads(args.threads)
+    kernels.set_threading(args.threading)
     rng = np.random.default_rng(0)
     wi, wo = uniform_hemisphere(args.n, rng), uniform_hemisphere(args.n, rng)
     evals = args.n * args.w
     print(
         f"N = {args.n}, W = {args.w}, numba threads = {numba.get_num_threads()}, "
-        f"layer = {numba.config.THREADING_LAYER}"
+        f"threading = {args.threading}"
     )
     print(
         f"{'model':<52} {'numba f':>9} {'numba log':>10} {'numpy f':>9} {'numpy log':>10}"
-        "   (ns per sample × set)"
+        f" {'f cpu-ns':>10}   (wall ns per sample × set; cpu-ns: CPU time of numba f)"
     )
     for name, options in CASES:
         model = models.get(name, **options)
         params = {p: rng.uniform(*_VALUES[p], (args.w, 1)) for p in model.parameter_names}
-        row = []
+        row, cpu_ns = [], 0.0
         for backend in ("numba", "numpy"):
             for fn in (model.evaluate, model.log_evaluate):
-                t = _best(
+                t, cpu = _best(
                     lambda fn=fn, backend=backend, params=params: fn(
                         params, wi, wo, backend=backend
                     ),
                     args.repeat if backend == "numba" else max(1, args.repeat // 3),
                 )
                 row.append(t / evals * 1e9)
+                if backend == "numba" and fn == model.evaluate:
+                    cpu_ns = cpu / evals * 1e9
         label = name + (" " + ",".join(options.values()) if options else "")
-        print(f"{label:<52} {row[0]:9.2f} {row[1]:10.2f} {row[2]:9.2f} {row[3]:10.2f}")
+        print(
+            f"{label:<52} {row[0]:9.2f} {row[1]:10.2f} {row[2]:9.2f} {row[3]:10.2f} {cpu_ns:10.2f}"
+        )
 
 
 if __name__ == "__main__":

@@ -7,7 +7,9 @@ with exposure t_i and signal s_i (electrons), the flux estimate is
     Φ̂ = Σ w_i s_i/t_i / Σ w_i,   w_i = t_i² / (g Φ̂ t_i + σ_read²),   Var(Φ̂) = 1 / Σ w_i,
 
 with w_i = 0 where saturated. The weights depend on Φ̂, so we start from the longest unsaturated
-exposure and iterate twice. Here signals are in electrons, so the gain g = 1.
+exposure and iterate twice. Here signals are in electrons, so the gain g = 1. σ_read² may differ
+per bracket (a dark frame's temporal variance grows with exposure through dark-current shot
+noise): pass one value per bracket.
 """
 
 from __future__ import annotations
@@ -21,10 +23,13 @@ def merge_brackets(
     electrons: list[np.ndarray],
     exposures_s: list[float],
     saturated: list[np.ndarray],
-    read_noise_e: float,
+    read_noise_e: float | list[float] | np.ndarray,
     iterations: int = 2,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Merge brackets → (flux e/s, variance (e/s)², all_saturated mask)."""
+    """Merge brackets → (flux e/s, variance (e/s)², all_saturated mask).
+
+    ``read_noise_e``: signal-independent noise σ (electrons), a scalar or one per bracket.
+    """
     t = np.asarray(exposures_s, dtype=np.float64)
     s = np.stack([np.asarray(e, dtype=np.float64) for e in electrons])
     sat = np.stack([np.asarray(m, dtype=bool) for m in saturated])
@@ -39,7 +44,9 @@ def merge_brackets(
         phi[fill] = s[i][fill] / t[i]
     all_sat = np.isnan(phi)
     phi = np.where(all_sat, s[np.argmin(t)] / t.min(), phi)
-    var_read = max(float(read_noise_e) ** 2, 1e-12)
+    var_read = np.maximum(
+        np.broadcast_to(np.asarray(read_noise_e, dtype=np.float64) ** 2, t.shape), 1e-12
+    ).reshape(shape)
     for _ in range(iterations):
         w = np.where(ok, tt**2 / (np.maximum(phi, 0.0) * tt + var_read), 0.0)
         wsum = w.sum(axis=0)

@@ -1,15 +1,25 @@
 """Reduce a run directory to BRDF samples (`samples.parquet`, DESIGN §4).
 
-Per pose: decode every bracket (untouched frames from `frames/`), subtract the black level,
-convert to electrons, merge brackets (noise-optimal HDR), convert to radiance with the camera
-irradiance equation, divide by the surface irradiance at each pixel's own surface point, and
-bin pixels into square regions (σ of the mean from the noise model).
+Per pose: decode every bracket (untouched frames from `frames/`), subtract the master dark of
+that exposure (or the nominal black level when the run has no dark frames), convert to
+electrons, merge brackets (noise-optimal HDR) per photosite, divide by the flat field
+(vignetting × PRNU, when the run has flat frames), form colour channels (RGGB → 2×2
+superpixels, greens summed), convert to radiance with the camera irradiance equation, divide by
+the surface irradiance at each pixel's own surface point, and bin pixels into square regions
+(σ of the mean from the noise model, including the dark and flat uncertainties).
+
+Calibration frames live raw in `RUN/calibration/` (`calibration.darks`, `calibration.flatfield`).
+Bad input: a frame listed in the manifest but missing → CalibrationError naming the first; a
+frame that exists but cannot be decoded (truncated RAW, EXR without colour channels) → that
+capture is skipped with a printed warning and counted in the Parquet metadata
+(`gonio.skipped_captures`); nothing decodable at all → CalibrationError.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import sys
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +29,9 @@ import numpy as np
 from acquisition.config import RigConfig
 from acquisition.kinematics import Kinematics
 from acquisition.store import RunStore
-from calibration.decode import decode_frame
+from calibration.darks import CalibrationFrameError, load_darks
+from calibration.decode import FrameError, decode_frame
+from calibration.flatfield import load_flat
 from calibration.geometry import Intrinsics, pixel_geometry
 from calibration.hdr import merge_brackets
 from calibration.radiometry import CameraRadiometry, surface_irradiance
@@ -47,30 +59,42 @@ class ReduceOptions:
     min_snr: float = 3.0  # below this a sample is flagged dark
 
 
-def _channels_of(decoded, radiometry: CameraRadiometry):
-    """Channel names, per-channel DN planes, per-channel saturation masks, pixel step and offset
-    for geometry (Bayer → 2×2 superpixels), and photosites per channel value."""
-    dn = np.asarray(decoded.dn, dtype=np.float64)
-    # The camera's clip level (full well), which can sit far below the ADC's white level.
-    sat = radiometry.saturated(dn)
-    if decoded.channels == "CFA":
-        pattern = str(decoded.cfa_pattern).upper()
+def _channels_of(flux, var, sat, channels: str, cfa_pattern: str | None):
+    """Per-channel planes of merged flux, variance and all-saturated masks, plus the pixel step
+    and per-channel offsets for geometry (Bayer → 2×2 superpixels) and photosites per channel
+    value. In an RGGB tile the R site sits at (0, 0), B at (1, 1) and the two greens' centroid
+    at (0.5, 0.5): each channel's rays go through its own photosites (a 0.5 px shift is 0.06°
+    here, which would bias a steep specular lobe by ~0.5%)."""
+    if channels == "CFA":
+        pattern = str(cfa_pattern).upper()
         if pattern != "RGGB":
             raise CalibrationError(f"CFA pattern {pattern} not supported yet (RGGB only)")
-        r, g1, g2, b = dn[0::2, 0::2], dn[0::2, 1::2], dn[1::2, 0::2], dn[1::2, 1::2]
-        sr, sg1, sg2, sb = sat[0::2, 0::2], sat[0::2, 1::2], sat[1::2, 0::2], sat[1::2, 1::2]
+
+        def split(a, combine):
+            r, g1, g2, b = a[0::2, 0::2], a[0::2, 1::2], a[1::2, 0::2], a[1::2, 1::2]
+            return [r, combine(g1, g2), b]
+
         # Two green photosites are summed (not averaged) so the electron count stays Poisson.
-        return ["R", "G", "B"], [r, g1 + g2, b], [sr, sg1 | sg2, sb], 2, 0.5, [1, 2, 1]
-    if dn.ndim == 2:
-        return ["Y"], [dn], [sat], 1, 0.0, [1]
-    names = ["R", "G", "B"][: dn.shape[2]]
+        return (
+            ["R", "G", "B"],
+            split(flux, np.add),
+            split(var, np.add),
+            split(sat, np.logical_or),
+            2,
+            [0.0, 0.5, 1.0],
+            [1, 2, 1],
+        )
+    if flux.ndim == 2:
+        return ["Y"], [flux], [var], [sat], 1, [0.0], [1]
+    n = flux.shape[2]
     return (
-        names,
-        [dn[..., c] for c in range(dn.shape[2])],
-        [sat[..., c] for c in range(dn.shape[2])],
+        ["R", "G", "B"][:n],
+        [flux[..., c] for c in range(n)],
+        [var[..., c] for c in range(n)],
+        [sat[..., c] for c in range(n)],
         1,
-        0.0,
-        [1] * dn.shape[2],
+        [0.0] * n,
+        [1] * n,
     )
 
 
@@ -135,7 +159,14 @@ def reduce_run(
             f"first {missing[0]}"
         )
 
+    try:
+        darks = load_darks(run_dir)
+        flat = load_flat(run_dir, darks, radiometry, intr)
+    except (CalibrationFrameError, FrameError) as exc:
+        raise CalibrationError(f"{run_dir}: {exc}") from None
+
     cols: dict[str, list[np.ndarray]] = defaultdict(list)
+    skipped: list[dict] = []
     iterator = sorted(by_pose.items())
     bar = None
     if progress:
@@ -145,25 +176,36 @@ def reduce_run(
         bar.start()
         task = bar.add_task("calibrating", total=len(iterator))
     try:
-        for pose_index, recs in iterator:
-            _reduce_pose(
-                pose_index,
-                recs,
-                run_dir,
-                radiometry,
-                intr,
-                kin,
-                intensity,
-                sample_size_m,
-                options,
-                cols,
-            )
+        for _pose_index, recs in iterator:
+            good, decoded = _decode_pose(recs, run_dir, skipped)
+            if good:
+                _reduce_pose(
+                    good,
+                    decoded,
+                    radiometry,
+                    intr,
+                    kin,
+                    intensity,
+                    sample_size_m,
+                    options,
+                    cols,
+                    darks,
+                    flat,
+                )
             if bar is not None:
                 bar.advance(task)
     finally:
         if bar is not None:
             bar.stop()
+    if skipped:
+        print(
+            f"warning: {len(skipped)} capture(s) skipped (unreadable frames), "
+            f"first {skipped[0]['frame']}",
+            file=sys.stderr,
+        )
     if not cols:
+        if skipped and len(skipped) == sum(len(r) for r in by_pose.values()):
+            raise CalibrationError(f"{run_dir}: no frame could be decoded ({skipped[0]['reason']})")
         raise CalibrationError(f"{run_dir}: no pixel of any frame falls on the sample")
     cat = {k: np.concatenate(v) for k, v in cols.items()}
     table = SampleTable(
@@ -189,78 +231,141 @@ def reduce_run(
                     "bin_px": options.bin_px,
                     "method": "camera irradiance equation, point source E = I cos(theta_i)/r^2",
                     "intensity_W_sr": intensity.tolist() if absolute else None,
+                    "mode": options.mode,
+                    "dark": (
+                        None
+                        if darks is None
+                        else {f"{t:g}": m.n_frames for t, m in sorted(darks.masters.items())}
+                    ),
+                    "flat": None if flat is None else {"frames": flat.n_frames},
                 }
             ),
+            "gonio.skipped_captures": json.dumps({"count": len(skipped), "captures": skipped}),
         },
     )
     write_samples(Path(out) if out is not None else run_dir / "samples.parquet", table)
     return table
 
 
+def _decode_pose(recs, run_dir, skipped):
+    """Decode a pose's brackets; a frame that cannot be decoded is skipped and recorded."""
+    good, decoded = [], []
+    for r in recs:
+        try:
+            decoded.append(decode_frame(run_dir / r.frame_path))
+            good.append(r)
+        except FrameError as exc:
+            skipped.append({"capture_id": int(r.id), "frame": r.frame_path, "reason": str(exc)})
+            print(f"warning: skipping capture {r.id}: {exc}", file=sys.stderr)
+    return good, decoded
+
+
+def _merge_pose(decoded, exposures, radiometry, darks, flat):
+    """Dark-subtract, convert to electrons, HDR-merge and flat-correct at full resolution.
+
+    Returns flux (e/s per photosite or pixel, flat-corrected), its variance and the
+    all-brackets-saturated mask, in the frames' own layout.
+    """
+    k = radiometry.gain_e_per_dn
+    electrons, sats, noise_sd = [], [], []
+    shape = decoded[0].dn.shape
+    for d, t in zip(decoded, exposures, strict=True):
+        dn = np.asarray(d.dn, dtype=np.float64)
+        if dn.shape != shape:
+            raise CalibrationError(f"{d.path}: frame shape {dn.shape} differs from {shape}")
+        # The camera's clip level (full well), which can sit far below the ADC's white level.
+        sats.append(radiometry.saturated(dn))
+        if darks is not None:
+            try:
+                dark = darks.for_exposure(t)
+            except CalibrationFrameError as exc:
+                raise CalibrationError(str(exc)) from None
+            electrons.append((dn - dark.dn) * k)
+            # Signal-independent variance: the frame's own (measured) dark noise plus that of
+            # the master subtracted from it.
+            noise_sd.append(k * math.sqrt(dark.temporal_var_dn2 + dark.master_var_dn2))
+        else:
+            electrons.append(radiometry.electrons(dn))
+            noise_sd.append(math.sqrt(radiometry.read_noise_e**2 + k**2 / 12.0))
+    flux, var, all_sat = merge_brackets(electrons, exposures, sats, np.asarray(noise_sd))
+    if flat is not None:
+        if flat.gain.shape != flux.shape:
+            raise CalibrationError(f"flat field shape {flat.gain.shape} ≠ frame {flux.shape}")
+        flux, var = flat.apply(flux, var)
+    return flux, var, all_sat
+
+
 def _reduce_pose(
-    pose_index, recs, run_dir, radiometry, intr, kin, intensity, sample_size_m, options, cols
+    recs, decoded, radiometry, intr, kin, intensity, sample_size_m, options, cols, darks, flat
 ) -> None:
-    decoded = [decode_frame(run_dir / r.frame_path) for r in recs]
     exposures = [float(r.exposure_s) for r in recs]
-    per_bracket = [_channels_of(d, radiometry) for d in decoded]
-    names, _, _, step, offset, sites = per_bracket[0]
-    axes = recs[0].axes_measured
-    geo = pixel_geometry(
-        intr,
-        kin.camera_position_m(axes),
-        kin.light_position_m(axes),
-        sample_size_m,
-        step=step,
-        offset=offset,
-        margin_m=options.margin_m,
+    flux_all, var_all, sat_all = _merge_pose(decoded, exposures, radiometry, darks, flat)
+    names, fluxes, variances, sats, step, offsets, sites = _channels_of(
+        flux_all, var_all, sat_all, decoded[0].channels, decoded[0].cfa_pattern
     )
-    b = options.bin_px
-    if options.mode == "center" and b > 1:
-        # Keep the pixel nearest each region's centre; then treat it as a 1×1 region.
-        c = b // 2
-        geo = type(geo)(
-            *(
-                a[c::b, c::b][: geo.on_sample.shape[0] // b, : geo.on_sample.shape[1] // b]
-                for a in (geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
-            )
-        )
-        per_bracket = [
-            (
-                names_,
-                [p[c::b, c::b][: geo.on_sample.shape[0], : geo.on_sample.shape[1]] for p in planes],
-                [m[c::b, c::b][: geo.on_sample.shape[0], : geo.on_sample.shape[1]] for m in sats],
-                step_ * b,
-                offset_ + c * step_,
-                sites_,
-            )
-            for names_, planes, sats, step_, offset_, sites_ in per_bracket
-        ]
-        step, offset = per_bracket[0][3], per_bracket[0][4]
-        b = 1
-    on = _block_all(geo.on_sample, b)
-    if not on.any():
-        return
-    cos_i = geo.wi[..., 2]
-    e_surf_geom = surface_irradiance(1.0, cos_i, geo.light_distance_m)  # × I per channel
-    wi = _block_mean(geo.wi, b)
-    wo = _block_mean(geo.wo, b)
-    wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
-    wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
-    ti, pi = vector_to_spherical(wi[on])
-    to, po = vector_to_spherical(wo[on])
-    ys, xs = np.nonzero(on)
-    px = (xs * b + (b - 1) / 2.0) * step + offset
-    py = (ys * b + (b - 1) / 2.0) * step + offset
+    axes = recs[0].axes_measured
+    cam_pos, light_pos = kin.camera_position_m(axes), kin.light_position_m(axes)
     k_rad = radiometry.radiance_per_electron_rate
-    read_var = radiometry.read_noise_e**2 + radiometry.gain_e_per_dn**2 / 12.0
+    geos: dict[float, object] = {}
+    sites_on = None
+    if step > 1:
+        # A superpixel is on the sample only if every photosite of it is: at grazing views one
+        # photosite spans more than the edge margin, so the centroid's test is not enough.
+        full = pixel_geometry(
+            intr, cam_pos, light_pos, sample_size_m, margin_m=options.margin_m
+        ).on_sample
+        sites_on = _block_all(full, step)
     for c, name in enumerate(names):
-        electrons = [radiometry.electrons(pb[1][c]) for pb in per_bracket]
-        sat = [pb[2][c] for pb in per_bracket]
-        n_sites = sites[c]
-        flux, var, all_sat = merge_brackets(
-            electrons, exposures, sat, math.sqrt(read_var * n_sites)
-        )
-        scale = k_rad / n_sites  # summed greens count twice the photosite area
+        b = options.bin_px
+        offset, step_c = offsets[c], step
+        if offset not in geos:
+            geos[offset] = pixel_geometry(
+                intr,
+                cam_pos,
+                light_pos,
+                sample_size_m,
+                step=step,
+                offset=offset,
+                margin_m=options.margin_m,
+            )
+        geo = geos[offset]
+        if sites_on is not None:
+            geo = type(geo)(
+                geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample & sites_on
+            )
+        flux, var, all_sat = fluxes[c], variances[c], sats[c]
+        if options.mode == "center" and b > 1:
+            # Keep the pixel nearest each region's centre; then treat it as a 1×1 region.
+            h, w = geo.on_sample.shape[0] // b, geo.on_sample.shape[1] // b
+            m = b // 2
+
+            def pick(a, m=m, h=h, w=w, b=b):
+                return a[m::b, m::b][:h, :w]
+
+            geo = type(geo)(
+                *(
+                    pick(a)
+                    for a in (geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
+                )
+            )
+            flux, var, all_sat = pick(flux), pick(var), pick(all_sat)
+            offset = offset + m * step_c
+            step_c = step_c * b
+            b = 1
+        on = _block_all(geo.on_sample, b)
+        if not on.any():
+            continue
+        e_surf_geom = surface_irradiance(1.0, geo.wi[..., 2], geo.light_distance_m)  # × I
+        wi = _block_mean(geo.wi, b)
+        wo = _block_mean(geo.wo, b)
+        wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
+        wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
+        ti, pi = vector_to_spherical(wi[on])
+        to, po = vector_to_spherical(wo[on])
+        ys, xs = np.nonzero(on)
+        px = (xs * b + (b - 1) / 2.0) * step_c + offset
+        py = (ys * b + (b - 1) / 2.0) * step_c + offset
+        scale = k_rad / sites[c]  # summed greens count twice the photosite area
         i_c = (
             float(intensity[min(c, len(intensity) - 1)])
             if name != "Y"

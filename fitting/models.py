@@ -168,9 +168,9 @@ def _as_2d(v: np.ndarray, rows: int, n: int) -> np.ndarray:
     return np.ascontiguousarray(np.broadcast_to(v, (rows, cols)), dtype=np.float64)
 
 
-def _parallel_geometry(out: np.ndarray) -> bool:
-    # The per-pair pass is worth threads when the whole call is (W·N large) and N is not tiny.
-    return _k._use_threads(out.size) and out.shape[1] >= 2048
+def _parallel_geometry(out: np.ndarray, kernel: str) -> bool:
+    # The per-pair pass is worth threads when the kernel itself runs threaded and N is not tiny.
+    return out.shape[1] >= 2048 and _k._prefers_threads(kernel, out.size)
 
 
 def _above(wi, wo):
@@ -268,7 +268,7 @@ class PhongFamily(Model):
         return np.where(_above(wi, wo), f, -np.inf if log else 0.0)
 
     def _numba(self, v, wi, wo, log, out):
-        geo = _k.lobe_geometry(wi, wo, self._kind, _parallel_geometry(out))
+        geo = _k.lobe_geometry(wi, wo, self._kind, _parallel_geometry(out, "lobe"))
         cols = {k: v[k] for k in ("kd", "ks", "n")}
         per_sample = any(c.shape[1] != 1 for c in cols.values())
         if per_sample:  # one table row per (set, sample)
@@ -353,7 +353,7 @@ class TorranceSparrow(Model):
         cols = {"kd": v["kd"], "ks": v["ks"], "m": v["m"]}
         cols["p1"] = _as_2d(p1, *out.shape) if p1.ndim < 2 else p1
         cols["p2"] = _as_2d(p2, *out.shape) if p2.ndim < 2 else p2
-        geo = _k.microfacet_geometry(wi, wo, _parallel_geometry(out))
+        geo = _k.microfacet_geometry(wi, wo, _parallel_geometry(out, "ts"))
         if all(c.shape[1] == 1 for c in cols.values()):
             flat = {k: np.ascontiguousarray(c[:, 0]) for k, c in cols.items()}
             kernel = _k.torrance_sparrow

@@ -261,6 +261,69 @@ def models_cmd(
         out.print(pt)
 
 
+runs_app = typer.Typer(no_args_is_help=True, help="Run directories: list and inspect.")
+app.add_typer(runs_app, name="runs")
+
+
+@runs_app.command("list")
+def runs_list(
+    root: Annotated[Path, typer.Option("--root", help="Folder holding run directories.")] = Path(
+        "runs"
+    ),
+) -> None:
+    """Table of runs: status, captures done/total, start, lab time, last stop reason."""
+    from gonio.runs import find_runs, runs_table
+
+    if not find_runs(root):
+        out.print(f"no runs under {root}")
+        return
+    out.print(runs_table(root))
+
+
+@runs_app.command("show")
+def runs_show(
+    run: Annotated[Path, typer.Argument(help="Run directory (or its name under --root).")],
+    root: Annotated[Path, typer.Option("--root", help="Where to look for a bare name.")] = Path(
+        "runs"
+    ),
+    verify: Annotated[bool, typer.Option(help="Verify every frame's SHA-256.")] = True,
+) -> None:
+    """Config summary, counts, events (with stop reasons) and checksum verification of RUN."""
+    from gonio.runs import show_run
+
+    path = run if run.exists() or run.is_absolute() else root / run
+    group, problems = show_run(path, verify=verify)
+    out.print(group)
+    if problems:
+        raise typer.Exit(4)
+
+
+rig_app = typer.Typer(no_args_is_help=True, help="Rig hardware.")
+app.add_typer(rig_app, name="rig")
+
+
+@rig_app.command("check")
+def rig_check(
+    rig: Annotated[Path, typer.Option("--rig", help="Rig TOML.")] = ...,  # type: ignore[assignment]
+) -> None:
+    """Ping every servo; read model, firmware, voltage, temperature, limits, error status."""
+    from acquisition.config import load_rig
+    from acquisition.protocols import DeviceFault
+    from gonio.backends import prepare_backends
+    from gonio.errors import UserError
+    from gonio.runs import check_rig, rig_check_table
+
+    cfg = load_rig(rig)
+    prepare_backends(cfg)
+    try:
+        rows = check_rig(cfg)
+    except DeviceFault as exc:  # the bus itself cannot be opened
+        raise UserError(str(exc)) from None
+    out.print(rig_check_table(cfg, rows))
+    if not all(r.ok for r in rows):
+        raise typer.Exit(3)
+
+
 def main() -> None:
     """Entry point: user mistakes print one line (no traceback) and exit 2."""
     warnings.filterwarnings("ignore", category=FutureWarning)

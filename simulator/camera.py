@@ -54,9 +54,11 @@ class SimCamera:
     @property
     def clip_level_dn(self) -> float:
         """Highest DN that is certainly not clipped: the full well sits below the ADC's white
-        level, and read noise is added after the well clips, so stay 4σ_read below it."""
+        level, and read noise is added after the well clips, so stay 6σ_read below it
+        (at 4σ one clipped value in ~30 000 would pass as unsaturated and get a long exposure's
+        large HDR weight; 6σ makes that ~1e-9)."""
         s = self.scene.sensor
-        well = s.black_level_dn + (s.full_well_e - 4.0 * s.read_noise_e) / s.gain_e_per_dn
+        well = s.black_level_dn + (s.full_well_e - 6.0 * s.read_noise_e) / s.gain_e_per_dn
         return float(math.floor(min(well, 2**s.adc_bits - 1)))
 
     def describe(self) -> dict[str, Any]:
@@ -85,6 +87,38 @@ class SimCamera:
         light_pos, camera_pos = self._positions()
         level = float(self._light_level())
         radiance = self.renderer.render(light_pos, camera_pos, intensity_scale=level)
+        return self._expose(radiance, exposure_s)
+
+    # -- calibration frames (what a lab does with a lens cap and an integrating sphere) ----------
+    def capture_dark(self, exposure_s: float) -> Frame:
+        """A dark frame: lens capped, zero radiance, same sensor (dark current, DSNU, noise)."""
+        k = self.renderer.intrinsics
+        return self._expose(np.zeros((int(k["height"]), int(k["width"]), 3)), exposure_s)
+
+    def flat_radiance(self, exposure_s: float, fill: float = 0.5) -> float:
+        """Uniform radiance (W m⁻² sr⁻¹) that fills ``fill`` of the full well on axis in
+        ``exposure_s`` (inverts the sensor's irradiance equation; a lab sets the sphere's level
+        from the histogram instead)."""
+        s = self.scene.sensor
+        photon_j = 6.62607015e-34 * 299792458.0 / s.wavelength_m
+        per_radiance = (
+            math.pi
+            / (4.0 * self.scene.camera.f_number**2)
+            * s.pixel_pitch_m**2
+            * exposure_s
+            / photon_j
+            * s.quantum_efficiency
+        )
+        return fill * s.full_well_e / per_radiance
+
+    def capture_flat(self, exposure_s: float, radiance_W_m2_sr: float | None = None) -> Frame:
+        """A flat frame: the camera facing a uniform (Lambertian, white) radiance field, such as
+        an integrating sphere's port; vignetting, PRNU and noise act as on any frame."""
+        k = self.renderer.intrinsics
+        L = self.flat_radiance(exposure_s) if radiance_W_m2_sr is None else radiance_W_m2_sr
+        return self._expose(np.full((int(k["height"]), int(k["width"]), 3), L), exposure_s)
+
+    def _expose(self, radiance: np.ndarray, exposure_s: float) -> Frame:
         dn = self.sensor.capture(radiance, exposure_s)
         self.captures += 1
         meta = {

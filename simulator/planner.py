@@ -1,26 +1,56 @@
 """Effect planner: derive the minimal simulation a scene calls for (issue 4, item 5).
 
-Rules (first version — scenes are a point light over one flat, one-sided sample):
-- variant: ``llvm_ad_rgb`` when the subprocess probe passes, else ``scalar_rgb``; RGB because no
-  current material needs spectra (spectral would only be chosen for spectral materials).
-- integrator: ``direct`` — a single flat one-sided sample cannot see itself, so there is no
-  interreflection; ``path`` (with the depth the geometry needs) is reserved for holder geometry.
-- spp: 1 — a point light under direct lighting is deterministic, and the stratified sampler
-  without jitter puts the single sample at the pixel centre (exact per-pixel geometry).
+Rules (docs/simulator.md has the full table):
+
+- variant: ``llvm_ad_rgb`` when the subprocess probe passes, else ``scalar_rgb``. RGB because no
+  material here needs spectra (spectral would only be chosen for a spectral material).
+- integrator: ``direct`` unless the scene has geometry that can *interreflect*: a holder whose
+  walls reflect (reflectance > 0). A black holder only shadows, which shadow rays of the direct
+  integrator already handle. With a reflecting holder: ``path`` with
+  max_depth = 2 + n, n = the fewest extra bounces whose energy (q = ρ_holder,max · ½)ⁿ falls
+  below the target noise (q: the holder albedo times ½, the largest cosine-weighted fraction of
+  a sample point's hemisphere a wall can fill — a point at the wall's foot). Capped at 16.
+- spp: 1 when every term is deterministic — a point or spot lamp (delta lights) under direct
+  lighting, and stray light on a purely Lambertian sample (BSDF sampling returns exactly ρ·L_amb
+  per sample, see simulator.render). Otherwise spp = ⌈(σ₁/ε)²⌉ rounded up to a square, where ε
+  is ``render.target_rel_noise`` and σ₁ the estimated relative noise of one sample:
+    area lamp        σ₁ = (a/d) · s   a = lamp radius, d = ``render.nominal_light_distance_m``,
+                                      s = lobe sharpness (1 diffuse, 1/α glossy, 10 unknown)
+    reflecting rim   σ₁ = ρ_h · F     F = h²/(h² + w²): cosine-weighted fraction of the sample
+                                      centre's hemisphere filled by a rim of height h at w
+    stray light      σ₁ = π L_amb d² / I  (ambient share of the signal; non-Lambertian only)
+  The largest σ₁ wins; ``render.spp`` overrides; ``render.max_spp`` caps.
 - sensor stages: exactly those ``Sensor.enabled_stages`` runs for the scene's sensor spec.
 
-Cost estimates are per capture, in ms, from per-pixel constants measured by
-``benchmarks/bench_render.py`` on a 2-core CI-class machine (estimates, not guarantees).
+Costs are per capture, in ms: measured per-effect constants for a 64×64 capture from
+``benchmarks/bench_effects.py`` (2-core dev machine, Nov 2026), scaled by pixel count and spp.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
-from simulator.scene import Scene
+from simulator.materials import iter_materials, needs_wavefront
+from simulator.scene import (
+    BlendMaterial,
+    DiffuseMaterial,
+    MeasuredMaterial,
+    ModelMaterial,
+    Scene,
+)
 from simulator.sensor import enabled_stages
 
-__all__ = ["SimPlan", "plan_effects", "RENDER_NS_PER_PIXEL", "STAGE_NS_PER_PIXEL"]
+__all__ = [
+    "SimPlan",
+    "plan_effects",
+    "planned_spp",
+    "render_effects",
+    "lobe_sharpness",
+    "RENDER_NS_PER_PIXEL",
+    "STAGE_NS_PER_PIXEL",
+    "EFFECT_MS_64",
+]
 
 # Measured with benchmarks/bench_render.py-style loops on the 2-core dev machine (Nov 2026):
 # render ≈ overhead + per-pixel cost (32² … 256² fits); sensor stages per pixel and channel.
@@ -40,6 +70,114 @@ STAGE_NS_PER_PIXEL = {
     "read_noise": 10.0,
     "adc": 6.0,
 }
+# Extra render ms per 64×64 capture *per sample per pixel* for each render-side effect, over the
+# point-lamp/direct baseline, in llvm_ad_rgb; from `python benchmarks/bench_effects.py` (see
+# docs/simulator.md for the table it prints). The spp an effect causes is costed separately as
+# (spp − 1) × the baseline.
+EFFECT_MS_64 = {
+    "light_spot": 0.3,
+    "light_area": 8.6,
+    "holder": 2.4,
+    "stray_light": 1.2,
+    "path_integrator": 7.4,
+    "measured_material": 13.0,
+    "model_material": 11.0,
+}
+MAX_DEPTH_CAP = 16
+
+
+def lobe_sharpness(material) -> float:
+    """How much a lobe amplifies a lamp's size into noise: 1 diffuse, 1/α glossy (α the
+    roughness), 10 for a measured or smooth (delta) material whose lobe width is unknown here."""
+    if isinstance(material, DiffuseMaterial):
+        return 1.0
+    if isinstance(material, BlendMaterial):
+        return max(lobe_sharpness(material.first), lobe_sharpness(material.second))
+    if isinstance(material, ModelMaterial):
+        m = material.parameters.get("m")
+        if m is None:
+            return 1.0 if material.model == "lambert" else 10.0
+        m_min = min(m) if isinstance(m, tuple) else m
+        return max(1.0, 1.0 / m_min)
+    alpha = getattr(material, "alpha", None)
+    if alpha is not None:
+        return max(1.0, 1.0 / alpha)
+    if isinstance(material, MeasuredMaterial):
+        return 10.0
+    return 10.0
+
+
+def _lambertian(material) -> bool:
+    if isinstance(material, DiffuseMaterial):
+        return True
+    if isinstance(material, ModelMaterial):
+        return material.model == "lambert"
+    return False
+
+
+def _square_at_least(x: float) -> int:
+    n = max(1, math.ceil(math.sqrt(max(x, 1.0)) - 1e-12))
+    return n * n
+
+
+def render_effects(scene: Scene) -> list[str]:
+    """Render-side effects the scene enables (names used in costs and Renderer.effect_counts)."""
+    out = [f"light_{scene.light.type}"] if scene.light.type != "point" else []
+    if scene.holder is not None:
+        out.append("holder")
+    if scene.stray_light is not None:
+        out.append("stray_light")
+    if _interreflects(scene):
+        out.append("path_integrator")
+    if needs_wavefront(scene.material):
+        out.append("model_material")
+    if any(isinstance(m, MeasuredMaterial) for m in iter_materials(scene.material)):
+        out.append("measured_material")
+    return out
+
+
+def _interreflects(scene: Scene) -> bool:
+    return scene.holder is not None and max(scene.holder.reflectance) > 0
+
+
+def _path_depth(scene: Scene) -> int:
+    """2 + n extra bounces with (ρ_h·½)ⁿ ≤ target noise (module docstring)."""
+    q = max(scene.holder.reflectance) * 0.5
+    eps = scene.render.target_rel_noise
+    n = 1 if q <= eps else math.ceil(math.log(eps) / math.log(q))
+    return min(2 + max(n, 1), MAX_DEPTH_CAP)
+
+
+def _noise_terms(scene: Scene) -> dict[str, float]:
+    """Estimated relative noise σ₁ of one sample per stochastic effect (module docstring)."""
+    terms: dict[str, float] = {}
+    d = scene.render.nominal_light_distance_m
+    if scene.light.type == "area":
+        terms["light_area"] = scene.light.radius_m / d * lobe_sharpness(scene.material)
+    if _interreflects(scene):
+        h = scene.holder
+        w = scene.sample.size_m / 2.0 + h.gap_m
+        terms["path_integrator"] = (
+            max(h.reflectance) * h.rim_height_m**2 / (h.rim_height_m**2 + w**2)
+        )
+    if scene.stray_light is not None and not (_lambertian(scene.material) and scene.holder is None):
+        share = math.pi * max(scene.stray_light.radiance_W_m2_sr) * d**2
+        share /= max(min(scene.light.intensity_W_sr), 1e-30)
+        terms["stray_light"] = min(1.0, share)
+    return terms
+
+
+def planned_spp(scene: Scene) -> int:
+    """Samples per pixel for ``scene`` (module docstring); always a perfect square."""
+    if scene.render.spp is not None:
+        return _square_at_least(scene.render.spp)
+    terms = _noise_terms(scene)
+    if not terms:
+        return 1
+    sigma = max(terms.values())
+    spp = _square_at_least((sigma / scene.render.target_rel_noise) ** 2)
+    cap = int(math.isqrt(scene.render.max_spp)) ** 2
+    return max(1, min(spp, cap))
 
 
 @dataclass
@@ -52,6 +190,9 @@ class SimPlan:
     spp: int
     sensor_stages: list[str]
     cost_estimate_ms: dict[str, float] = field(default_factory=dict)
+    render_effects: list[str] = field(default_factory=list)
+    bsdf_samples: int = 0
+    noise_terms: dict[str, float] = field(default_factory=dict)
 
     @property
     def total_ms(self) -> float:
@@ -62,6 +203,12 @@ class SimPlan:
         lines = [
             f"variant     {self.variant}",
             f"integrator  {self.integrator} (max_depth {self.max_depth}), spp {self.spp}",
+            f"render      {', '.join(self.render_effects) or 'point lamp only'}",
+        ]
+        if self.noise_terms:
+            terms = ", ".join(f"{k} σ₁≈{v:.3g}" for k, v in self.noise_terms.items())
+            lines.append(f"noise       {terms}")
+        lines += [
             "",
             f"{'effect':<16}{'est. ms/capture':>16}",
             f"{'-' * 16}{'-' * 16}",
@@ -81,27 +228,34 @@ def plan_effects(scene: Scene, variant: str | None = None) -> SimPlan:
         variant = choose_variant()
     w, h = scene.camera.resolution
     npx = w * h
-    spp = 1  # point light + direct lighting: deterministic (see module docstring)
+    spp = planned_spp(scene)
+    effects = render_effects(scene)
+    path = "path_integrator" in effects
     stages = enabled_stages(scene.sensor)
     key = variant if variant in RENDER_NS_PER_PIXEL else "scalar_rgb"
-    cost = {
-        "render": RENDER_OVERHEAD_MS[key] + RENDER_NS_PER_PIXEL[key] * npx * spp * 1e-6,
-    }
+    base_ms = RENDER_OVERHEAD_MS[key] + RENDER_NS_PER_PIXEL[key] * npx * 1e-6
+    cost = {"render": base_ms}
+    # Constants are for llvm; scalar pays its per-pixel ratio on top.
+    ratio = RENDER_NS_PER_PIXEL[key] / RENDER_NS_PER_PIXEL["llvm_ad_rgb"]
+    for eff in effects:
+        cost[eff] = EFFECT_MS_64[eff] * npx / 4096 * spp * ratio
+    if spp > 1:
+        cost["spp"] = RENDER_NS_PER_PIXEL[key] * npx * (spp - 1) * 1e-6
     # Stages after "bayer" work on one plane instead of three.
     planes = 3
     for st in stages:
-        if st == "bayer":
-            planes_here = 3
-        else:
-            planes_here = planes
-        cost[st] = STAGE_NS_PER_PIXEL[st] * npx * planes_here * 1e-6
+        cost[st] = STAGE_NS_PER_PIXEL[st] * npx * planes * 1e-6
         if st == "bayer":
             planes = 1
     return SimPlan(
         variant=variant,
-        integrator="direct",
-        max_depth=1,
+        integrator="path" if path else "direct",
+        max_depth=_path_depth(scene) if path else 1,
         spp=spp,
         sensor_stages=stages,
         cost_estimate_ms=cost,
+        render_effects=effects,
+        # BSDF sampling is only useful for lamps with area or for the environment.
+        bsdf_samples=1 if (scene.light.type == "area" or scene.stray_light is not None) else 0,
+        noise_terms=_noise_terms(scene),
     )

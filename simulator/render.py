@@ -1,6 +1,6 @@
 """Mitsuba 3 radiance renderer for the simulated gonioreflectometer camera.
 
-One Mitsuba scene is loaded per material; each pose only moves the point light and the camera
+One Mitsuba scene is loaded per material; each pose only moves the lamp and the camera
 through ``mi.traverse`` + ``params.update()`` (no reload, no re-tracing of kernels), which is what
 makes a 64×64 capture cost a few ms in ``llvm_ad_rgb`` (DESIGN §7).
 
@@ -9,6 +9,10 @@ no exposure, no vignetting — the sensor model adds those). With a point light 
 I (W sr⁻¹) and the ``direct`` integrator a surface point returns exactly
     L = f_r(ω_i, ω_o) · I · cos θ_i / r²                                  (rendering equation)
 at 1 spp, because the light has no area to sample.
+
+Optional effects (only loaded when the scene asks, see simulator.planner): a spot lamp or an area
+lamp (disk/square facing the sample), a holder rim of four boxes (shadows; interreflection →
+``path`` integrator), and ambient stray light (a ``constant`` environment emitter).
 
 Pixel sampling: a ``stratified`` sampler with ``jitter=False``. At spp = 1 every pixel is sampled
 exactly through its centre (so the per-pixel geometry in ``pixel_rays`` is exact); at spp = n² the
@@ -26,15 +30,12 @@ has columns (left, up, forward); the OpenCV frame is (−left, −up, forward): 
 
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 
-from simulator.scene import (
-    BlendMaterial,
-    DiffuseMaterial,
-    RoughConductorMaterial,
-    RoughPlasticMaterial,
-    Scene,
-)
+from simulator.materials import material_dict, needs_wavefront
+from simulator.scene import Scene
 from simulator.variant import ensure_variant
 
 __all__ = [
@@ -44,6 +45,7 @@ __all__ = [
     "camera_frame",
     "world_to_camera_cv",
     "material_dict",
+    "holder_walls",
 ]
 
 
@@ -51,44 +53,22 @@ def _rgb(value) -> dict:
     return {"type": "rgb", "value": [float(v) for v in value]}
 
 
-def material_dict(material) -> dict:
-    """Mitsuba ``load_dict`` description of a scene material (simulator.scene types)."""
-    if isinstance(material, DiffuseMaterial):
-        return {"type": "diffuse", "reflectance": _rgb(material.reflectance)}
-    if isinstance(material, RoughConductorMaterial):
-        d = {
-            "type": "roughconductor",
-            "distribution": material.distribution,
-            "alpha": float(material.alpha),
-            "specular_reflectance": _rgb(material.specular_reflectance),
-        }
-        if material.eta is not None or material.k is not None:
-            if material.eta is None or material.k is None:
-                raise ValueError("roughconductor: give both eta and k, or a conductor preset")
-            d["eta"] = _rgb(material.eta)
-            d["k"] = _rgb(material.k)
-        else:
-            d["material"] = material.conductor or "none"
-        return d
-    if isinstance(material, RoughPlasticMaterial):
-        return {
-            "type": "roughplastic",
-            "distribution": material.distribution,
-            "alpha": float(material.alpha),
-            "diffuse_reflectance": _rgb(material.diffuse_reflectance),
-            "int_ior": float(material.int_ior),
-            "ext_ior": float(material.ext_ior),
-        }
-    if isinstance(material, BlendMaterial):
-        # Mitsuba blendbsdf: weight 0 selects the first nested BSDF, 1 the second, i.e.
-        # f = (1 − w)·first + w·second. Nested BSDFs are taken in declaration order.
-        return {
-            "type": "blendbsdf",
-            "weight": float(material.weight),
-            "bsdf_0_first": material_dict(material.first),
-            "bsdf_1_second": material_dict(material.second),
-        }
-    raise TypeError(f"unsupported material type {type(material).__name__}")
+def holder_walls(scene: Scene) -> list[tuple[tuple[float, float, float], tuple[float, ...]]]:
+    """The holder rim as four axis-aligned boxes: (centre_m, half_extent_m) each.
+
+    Inner faces at ±w with w = sample half-side + gap; walls ``wall_thickness_m`` thick and
+    ``rim_height_m`` tall, standing on the sample plane z = 0 (the x-walls span the corners).
+    """
+    h = scene.holder
+    if h is None:
+        return []
+    w = scene.sample.size_m / 2.0 + h.gap_m
+    t, z = h.wall_thickness_m, h.rim_height_m / 2.0
+    out = []
+    for s in (1.0, -1.0):
+        out.append(((s * (w + t / 2), 0.0, z), (t / 2, w + t, z)))
+        out.append(((0.0, s * (w + t / 2), z), (w, t / 2, z)))
+    return out
 
 
 def look_at_up(camera_pos_m, target_m=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -129,6 +109,11 @@ def world_to_camera_cv(camera_pos_m, target_m=(0.0, 0.0, 0.0)) -> tuple[np.ndarr
     return r, t
 
 
+def _class_name(obj) -> str:
+    """Mitsuba plugin class of a loaded object, e.g. "PointLight" (from its string form)."""
+    return str(obj).split("[", 1)[0].strip()
+
+
 def camera_intrinsics(scene: Scene) -> dict:
     """Pinhole intrinsics (pixels, OpenCV convention) of the simulated camera.
 
@@ -147,14 +132,22 @@ class Renderer:
     Parameters
     ----------
     scene : simulator.scene.Scene
-    spp : int
+    spp : int, optional
         samples per pixel; must be a perfect square (stratified midpoint grid). 1 = pixel centre,
-        exact for a point light with the ``direct`` integrator.
+        exact for a point or spot light with the ``direct`` integrator. Default: the plan's spp.
     variant : str, optional
         Mitsuba variant; default ``choose_variant()`` (llvm_ad_rgb if usable, else scalar_rgb).
+    plan : simulator.planner.SimPlan, optional
+        the effect plan (default ``plan_effects(scene)``): integrator, depth and spp come from it,
+        and only the emitters/shapes the scene asks for are loaded.
+
+    Instrumentation (for tests that prove a disabled effect never ran): ``loaded`` describes what
+    was actually loaded into Mitsuba (read back from the Mitsuba scene object: integrator class,
+    emitter classes, shape ids), and ``effect_counts`` counts per render call which render-side
+    effects were in the rendered scene.
     """
 
-    def __init__(self, scene: Scene, spp: int = 1, variant: str | None = None):
+    def __init__(self, scene: Scene, spp: int | None = None, variant: str | None = None, plan=None):
         import mitsuba as mi
 
         if variant is None:
@@ -163,21 +156,38 @@ class Renderer:
             self.variant = variant
             if mi.variant() != variant:
                 mi.set_variant(variant)
+        if plan is None:
+            from simulator.planner import plan_effects
+
+            plan = plan_effects(scene, variant=self.variant)
+        self.plan = plan
+        if spp is None:
+            spp = plan.spp
         n = int(round(np.sqrt(spp)))
         if n * n != spp or spp < 1:
             raise ValueError(f"spp must be a perfect square ≥ 1 (got {spp})")
         self.spp = spp
         self.scene = scene
         self._mi = mi
+        self._wavefront = needs_wavefront(scene.material)
         w, h = scene.camera.resolution
         half = scene.sample.size_m / 2.0
         T = mi.ScalarTransform4f
         to_world = T().look_at(origin=[0.0, 0.0, 1.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0])
+        if plan.integrator == "path":
+            # rr_depth beyond max_depth: no Russian roulette (its extra noise buys nothing here).
+            integrator = {"type": "path", "max_depth": plan.max_depth, "rr_depth": 1000}
+        else:
+            # bsdf_samples=0 when every light is a delta light (BSDF sampling can never hit it);
+            # an area light or the stray-light environment is also reached by BSDF sampling.
+            integrator = {
+                "type": "direct",
+                "emitter_samples": 1,
+                "bsdf_samples": plan.bsdf_samples,
+            }
         desc = {
             "type": "scene",
-            # Point light, one flat one-sided sample: no interreflection → direct lighting only.
-            # bsdf_samples=0: BSDF sampling can never hit a delta light, it would only cost time.
-            "integrator": {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0},
+            "integrator": integrator,
             "sensor": {
                 "type": "perspective",
                 "fov": float(scene.camera.fov_deg),
@@ -194,21 +204,95 @@ class Renderer:
                     "rfilter": {"type": "box"},  # radiometry: no negative/overlapping lobes
                 },
             },
-            "light": {
-                "type": "point",
-                "position": [0.0, 0.0, 1.0],
-                "intensity": _rgb(scene.light.intensity_W_sr),
-            },
+            "light": self._light_dict(),
             "sample": {
                 "type": "rectangle",  # one-sided, normal +z, default extent [-1, 1]²
                 "to_world": T().scale([half, half, 1.0]),
                 "bsdf": material_dict(scene.material),
             },
         }
-        self._scene = mi.load_dict(desc)
+        for k, (centre, ext) in enumerate(holder_walls(scene)):
+            desc[f"holder_{k}"] = {
+                "type": "cube",  # closed box [-1, 1]³, outward normals
+                "to_world": T().translate(list(centre)).scale(list(ext)),
+                "bsdf": {"type": "diffuse", "reflectance": _rgb(scene.holder.reflectance)},
+            }
+        if scene.stray_light is not None:
+            # sampling_weight 0: emitter sampling always picks the lamp (a point/spot lamp stays
+            # deterministic at 1 spp); the environment is found by BSDF sampling (MIS weight 1),
+            # which for a Lambertian sample returns exactly ρ·L_amb per sample.
+            desc["stray_light"] = {
+                "type": "constant",
+                "radiance": _rgb(scene.stray_light.radiance_W_m2_sr),
+                "sampling_weight": 0.0,
+            }
+        # optimize=False: Mitsuba would otherwise merge shapes that share an identical BSDF
+        # (e.g. a holder as white as the sample) into one mesh, and the sample's BSDF is needed.
+        self._scene = self._with_flags(mi.load_dict, desc, optimize=False)
         self._params = mi.traverse(self._scene)
-        self._bsdf = self._scene.shapes()[0].bsdf()
+        shapes = list(self._scene.shapes())
+        self._bsdf = next(s for s in shapes if s.id() == "sample").bsdf()
         self.intrinsics = camera_intrinsics(scene)
+        self.loaded = {
+            "integrator": _class_name(self._scene.integrator()),
+            "emitters": sorted(_class_name(e) for e in self._scene.emitters()),
+            # Mitsuba keeps the dict key as id for analytic shapes; meshes (the holder's cubes)
+            # report an empty id, so count shapes by their class as well.
+            "shapes": sorted(f"{_class_name(s)}:{s.id()}" for s in shapes),
+            "spp": spp,
+            "max_depth": plan.max_depth if plan.integrator == "path" else None,
+        }
+        self.effect_counts: Counter[str] = Counter()
+        self._render_effects = ["render", f"light_{scene.light.type}"]
+        if scene.holder is not None:
+            self._render_effects.append("holder")
+        if scene.stray_light is not None:
+            self._render_effects.append("stray_light")
+        if plan.integrator == "path":
+            self._render_effects.append("path_integrator")
+
+    def _light_dict(self) -> dict:
+        light = self.scene.light
+        dummy = self._mi.ScalarTransform4f().look_at(
+            origin=[0.0, 0.0, 1.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0]
+        )
+        if light.type == "point":
+            return {
+                "type": "point",
+                "position": [0.0, 0.0, 1.0],
+                "intensity": _rgb(light.intensity_W_sr),
+            }
+        if light.type == "spot":
+            beam = (
+                light.beam_width_deg
+                if light.beam_width_deg is not None
+                else 0.75 * (light.cutoff_deg)
+            )
+            return {
+                "type": "spot",
+                "to_world": dummy,
+                "intensity": _rgb(light.intensity_W_sr),
+                "cutoff_angle": float(light.cutoff_deg),
+                "beam_width": float(min(beam, light.cutoff_deg)),
+            }
+        # Area lamp: a one-sided shape emitting along its +z normal, turned to face the sample.
+        return {
+            "type": "disk" if light.shape == "disk" else "rectangle",
+            "to_world": dummy.scale([light.radius_m, light.radius_m, 1.0]),
+            "emitter": {"type": "area", "radiance": _rgb(light.radiance_W_m2_sr)},
+        }
+
+    def _with_flags(self, fn, *args, **kwargs):
+        """Call ``fn`` in drjit wavefront mode if a Python-model BSDF needs concrete arrays."""
+        if not self._wavefront or self.variant.startswith("scalar"):
+            return fn(*args, **kwargs)
+        import drjit as dr
+
+        with (
+            dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False),
+            dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False),
+        ):
+            return fn(*args, **kwargs)
 
     def render(
         self,
@@ -220,12 +304,32 @@ class Renderer:
     ) -> np.ndarray:
         """Radiance image (H, W, 3) float32 in W m⁻² sr⁻¹ for one light/camera pose.
 
-        ``intensity_scale`` multiplies the light's radiant intensity; radiance is linear in it,
-        so it is applied to the image (exact, and no parameter update is needed).
+        ``intensity_scale`` multiplies the lamp's radiant intensity. With no stray light radiance
+        is linear in it, so it is applied to the image (exact, no parameter update); stray light
+        does not scale with the lamp, so then the lamp's emission parameter is updated instead.
         """
         mi = self._mi
         p = self._params
-        p["light.position"] = mi.Point3f(*[float(v) for v in light_pos_m])
+        light = self.scene.light
+        lp = [float(v) for v in light_pos_m]
+        if light.type == "point":
+            p["light.position"] = mi.Point3f(*lp)
+        else:
+            # Spot and area lamps face the sample centre (the rig aims the lamp at it).
+            tw = mi.ScalarTransform4f().look_at(
+                origin=lp, target=[0.0, 0.0, 0.0], up=[float(v) for v in look_at_up(lp)]
+            )
+            if light.type == "area":
+                tw = tw.scale([light.radius_m, light.radius_m, 1.0])
+            p["light.to_world"] = mi.Transform4f(tw) if hasattr(mi, "Transform4f") else tw
+        scale_in_scene = self.scene.stray_light is not None
+        if scale_in_scene:
+            key, base = (
+                ("light.emitter.radiance.value", light.radiance_W_m2_sr)
+                if light.type == "area"
+                else ("light.intensity.value", light.intensity_W_sr)
+            )
+            p[key] = mi.Color3f(*[float(b) * float(intensity_scale) for b in base])
         up = look_at_up(camera_pos_m, camera_target_m)
         tw = mi.ScalarTransform4f().look_at(
             origin=[float(v) for v in camera_pos_m],
@@ -234,10 +338,11 @@ class Renderer:
         )
         p["sensor.to_world"] = mi.Transform4f(tw) if hasattr(mi, "Transform4f") else tw
         p.update()
-        img = mi.render(self._scene, spp=self.spp, seed=seed)
+        img = self._with_flags(mi.render, self._scene, spp=self.spp, seed=seed)
         out = np.asarray(img, dtype=np.float32)
-        if intensity_scale != 1.0:
+        if intensity_scale != 1.0 and not scale_in_scene:
             out = out * np.float32(intensity_scale)
+        self.effect_counts.update(self._render_effects)
         return out
 
     def pixel_rays(self, camera_pos_m, camera_target_m=(0.0, 0.0, 0.0)):

@@ -27,3 +27,27 @@ CONFIGS = REPO / "configs"
 @pytest.fixture
 def configs() -> Path:
     return CONFIGS
+
+
+def find_shared_data() -> Path:
+    """The shared real-data directory: $GONIO_SHARED_DATA, else a `shared/data` beside the
+    clone or one of its parents (CI clones beside shared/), else /work/shared/data.
+    Missing data is a test failure, never a skip."""
+    candidates = []
+    if os.environ.get("GONIO_SHARED_DATA"):
+        candidates.append(Path(os.environ["GONIO_SHARED_DATA"]))
+    candidates += [p / "shared" / "data" for p in (REPO, *REPO.parents)]
+    candidates.append(Path("/work/shared/data"))
+    for c in candidates:
+        if (c / "SOURCES.md").is_file():
+            return c
+    pytest.fail(
+        "shared data not found (looked in "
+        + ", ".join(str(c) for c in candidates)
+        + "); set GONIO_SHARED_DATA to the shared/data directory"
+    )
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    return find_shared_data()

@@ -3,8 +3,6 @@ the independent readers (rawpy/LibRaw, OpenEXR), the DESIGN §7 linearisation, a
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import OpenEXR
 import pytest
@@ -14,8 +12,6 @@ from calibration.decode import FrameError, decode_frame, demosaic_to_rgb, linear
 from simulator.frames import encode_capture, encode_dng, encode_exr
 from simulator.scene import SensorSpec
 from simulator.sensor import Sensor, expected_dn
-
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "camera_raw"
 
 
 def _mosaic(seed=0, shape=(48, 64)):
@@ -118,14 +114,14 @@ def test_decode_errors(tmp_path):
     assert issubclass(FrameError, ValueError)
 
 
-@pytest.mark.skipif(not SHARED_DATA.is_dir(), reason="shared camera_raw data not present")
-def test_real_files():
-    nef = SHARED_DATA / "Nikon_uncompressed.nef"
+def test_real_files(shared_data):
+    camera_raw = shared_data / "camera_raw"
+    nef = camera_raw / "Nikon_uncompressed.nef"
     with pytest.raises(FrameError) as e:
         decode_frame(nef)
     assert "not a Bayer sensor raw (RawType.Stack)" in _one_line_naming(e, nef)
 
-    dng = SHARED_DATA / "Blackmagic.dng"
+    dng = camera_raw / "Blackmagic.dng"
     d = decode_frame(dng)
     with rawpy.imread(str(dng)) as raw:
         np.testing.assert_array_equal(d.dn, raw.raw_image_visible.astype(np.float32))

@@ -200,7 +200,14 @@ def test_lobe_kernels_match_reference(name):
     _compare(model, sets, wi, wo)
 
 
-def test_large_problem_uses_parallel_kernels_identically():
+@pytest.fixture
+def force_parallel():
+    previous = kernels.set_threading("parallel")
+    yield
+    kernels.set_threading(previous)
+
+
+def test_large_problem_uses_parallel_kernels_identically(force_parallel):
     # Above PARALLEL_MIN_WORK the parallel kernels run; they must give the serial results.
     n = kernels.PARALLEL_MIN_WORK // 8 + 7
     wi, wo = pairs(n, seed=8)
@@ -221,6 +228,22 @@ def test_large_problem_uses_parallel_kernels_identically():
             rows = np.stack([fn({k: v[i] for k, v in ps.items()}, wi, wo) for i in range(2)])
             np.testing.assert_array_equal(big[:2], rows)
         _compare(model, {k: v[:3] for k, v in sets.items()}, wi[:3000], wo[:3000])
+
+
+def test_auto_threading_gives_identical_results():
+    wi, wo = pairs(kernels.PARALLEL_MIN_WORK // 8 + 7, seed=12)
+    model = models.get("torrance-sparrow")
+    sets = {k: np.full((8, 1), v) for k, v in params_for(model).items()}
+    previous = kernels.set_threading("serial")
+    try:
+        ref = model.evaluate(sets, wi, wo)
+        kernels.set_threading("auto")
+        for _ in range(6):  # tries both twins, then keeps the faster one
+            np.testing.assert_array_equal(model.evaluate(sets, wi, wo), ref)
+    finally:
+        kernels.set_threading(previous)
+    with pytest.raises(ValueError, match="threading policy"):
+        kernels.set_threading("fast")
 
 
 def test_kernel_exp_against_numpy():

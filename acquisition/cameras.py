@@ -1,0 +1,226 @@
+"""Real cameras: a tethered-folder camera, and an optional gphoto2 camera.
+
+Tethered folder: vendor software (or a tethering tool) writes each frame into a folder. After
+a trigger, the camera waits for a file that was not there before, waits until its size stops
+changing (the writer may still be streaming it), and returns its bytes untouched with its
+suffix (".nef", ".dng", ".exr"...). No frame within `timeout_s` is a DeviceFault, so the
+runner stops safely instead of hanging or recording a stale frame.
+
+gphoto2: the python-gphoto2 bindings are an optional extra; the import is guarded, and asking
+for the backend without them is a DeviceFault with the install hint.
+"""
+
+from __future__ import annotations
+
+import shlex
+import subprocess
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from acquisition.protocols import DeviceFault, Frame
+
+__all__ = ["FolderCamera", "Gphoto2Camera", "folder_camera", "gphoto2_camera"]
+
+# Names vendor tools use while a file is still being written; never picked up.
+_PARTIAL = (".tmp", ".part", ".crdownload", ".download", "~")
+
+
+class FolderCamera:
+    """Implements `Camera` on a folder that receives one new file per capture.
+
+    Parameters
+    ----------
+    folder: where the frames land.
+    trigger: called with the exposure (s) to take one frame (a shell command, a serial
+        shutter release...); None when something else triggers (e.g. the vendor software's
+        interval timer, or a test).
+    timeout_s: wall time to wait for the new file.
+    stable_s: the file's size must be unchanged (and non-zero) for this long.
+    poll_s: how often the folder is listed.
+    info: what `describe()` reports (resolution, pixel pitch... from the rig config).
+    """
+
+    def __init__(
+        self,
+        folder: Path | str,
+        *,
+        trigger: Callable[[float], None] | None = None,
+        timeout_s: float = 30.0,
+        stable_s: float = 0.2,
+        poll_s: float = 0.02,
+        exposure_range_s: tuple[float, float] = (1e-5, 60.0),
+        info: dict[str, Any] | None = None,
+    ) -> None:
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise DeviceFault(f"camera folder {self.folder} does not exist")
+        self.trigger = trigger
+        self.timeout_s = timeout_s
+        self.stable_s = stable_s
+        self.poll_s = poll_s
+        self.exposure_range_s = exposure_range_s
+        self.info = dict(info or {})
+        self._seen = set(self._listing())  # files already there are never "new"
+
+    def _listing(self) -> dict[str, int]:
+        out = {}
+        for p in self.folder.iterdir():
+            if p.name.startswith(".") or p.name.endswith(_PARTIAL) or not p.is_file():
+                continue
+            try:
+                out[p.name] = p.stat().st_size
+            except FileNotFoundError:  # renamed away between listing and stat
+                continue
+        return out
+
+    def capture(self, exposure_s: float) -> Frame:
+        lo, hi = self.exposure_range_s
+        if not lo <= exposure_s <= hi:
+            raise ValueError(f"exposure {exposure_s} s outside the camera's range {lo}..{hi} s")
+        self._seen |= set(self._listing())
+        t0 = time.monotonic()
+        if self.trigger is not None:
+            self.trigger(exposure_s)
+        name, size, since = None, -1, 0.0
+        while True:
+            now = time.monotonic()
+            listing = self._listing()
+            if name is None:
+                new = sorted(n for n in listing if n not in self._seen)
+                if new:
+                    name, size, since = new[0], listing[new[0]], now
+            elif name not in listing:  # the writer renamed or removed it: start over
+                name = None
+            elif listing[name] != size or size == 0:
+                size, since = listing[name], now
+            elif now - since >= self.stable_s:
+                break
+            if now - t0 > self.timeout_s:
+                what = "no new file" if name is None else f"{name} still growing"
+                raise DeviceFault(
+                    f"camera folder {self.folder}: {what} within {self.timeout_s:g} s "
+                    f"of the trigger (exposure {exposure_s:g} s)"
+                )
+            time.sleep(self.poll_s)
+        path = self.folder / name
+        data = path.read_bytes()
+        self._seen.add(name)
+        if len(data) != size:  # changed between the stability check and the read
+            raise DeviceFault(f"camera folder {self.folder}: {name} changed while being read")
+        return Frame(
+            data=data,
+            suffix=path.suffix.lower(),
+            metadata={"exposure_s": exposure_s, "source_file": name},
+        )
+
+    def supported_exposures(self) -> tuple[float, float]:
+        return self.exposure_range_s
+
+    def describe(self) -> dict[str, Any]:
+        return {"backend": "folder", "folder": str(self.folder), **self.info}
+
+
+def _command_trigger(argv: Sequence[str]) -> Callable[[float], None]:
+    """A trigger that runs a command; `{exposure_s}` in an argument is replaced."""
+
+    def trigger(exposure_s: float) -> None:
+        cmd = [a.replace("{exposure_s}", f"{exposure_s:g}") for a in argv]
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+        if res.returncode != 0:
+            msg = (res.stderr or res.stdout).strip().splitlines()
+            raise DeviceFault(
+                f"camera trigger {shlex.join(cmd)} failed ({res.returncode}): "
+                f"{msg[0] if msg else 'no output'}"
+            )
+
+    return trigger
+
+
+def folder_camera(config: Any, clock: Any = None) -> FolderCamera:
+    """Factory for `CAMERA_BACKENDS["folder"]` from a RigConfig."""
+    cam = config.camera
+    if not cam.folder:
+        raise DeviceFault('camera.backend "folder" needs camera.folder (the tethering folder)')
+    trigger = _command_trigger(cam.trigger_command) if cam.trigger_command else None
+    return FolderCamera(cam.folder, trigger=trigger, timeout_s=cam.timeout_s)
+
+
+class Gphoto2Camera:
+    """A camera driven through libgphoto2 (python-gphoto2). Frames are the camera's own files
+    (RAW when the camera is set to RAW), returned untouched."""
+
+    def __init__(self, info: dict[str, Any] | None = None) -> None:
+        try:
+            import gphoto2 as gp  # type: ignore[import-not-found]
+        except ImportError as exc:
+            raise DeviceFault(
+                "camera.backend 'gphoto2' needs the python-gphoto2 package "
+                "(pip install gphoto2) and libgphoto2"
+            ) from exc
+        self._gp = gp
+        self.info = dict(info or {})
+        try:
+            self._cam = gp.Camera()
+            self._cam.init()
+        except gp.GPhoto2Error as exc:
+            raise DeviceFault(f"gphoto2: no camera ({exc})") from exc
+
+    def _set_shutter(self, exposure_s: float) -> None:
+        gp = self._gp
+        config = self._cam.get_config()
+        ok, widget = gp.gp_widget_get_child_by_name(config, "shutterspeed")
+        if ok < gp.GP_OK:
+            raise DeviceFault("gphoto2: the camera has no shutterspeed setting")
+        choices = [widget.get_choice(i) for i in range(widget.count_choices())]
+        best = min(choices, key=lambda c: abs(_parse_shutter(c) - exposure_s))
+        widget.set_value(best)
+        self._cam.set_config(config)
+
+    def capture(self, exposure_s: float) -> Frame:
+        gp = self._gp
+        try:
+            self._set_shutter(exposure_s)
+            where = self._cam.capture(gp.GP_CAPTURE_IMAGE)
+            cam_file = self._cam.file_get(where.folder, where.name, gp.GP_FILE_TYPE_NORMAL)
+            data = bytes(memoryview(cam_file.get_data_and_size()))
+        except gp.GPhoto2Error as exc:
+            raise DeviceFault(f"gphoto2 capture failed: {exc}") from exc
+        return Frame(
+            data=data,
+            suffix=Path(where.name).suffix.lower(),
+            metadata={"exposure_s": exposure_s, "source_file": where.name},
+        )
+
+    def supported_exposures(self) -> list[float]:
+        gp = self._gp
+        config = self._cam.get_config()
+        ok, widget = gp.gp_widget_get_child_by_name(config, "shutterspeed")
+        if ok < gp.GP_OK:
+            return []
+        values = (_parse_shutter(widget.get_choice(i)) for i in range(widget.count_choices()))
+        return sorted(v for v in values if v > 0)
+
+    def describe(self) -> dict[str, Any]:
+        return {"backend": "gphoto2", **self.info}
+
+    def close(self) -> None:
+        self._cam.exit()
+
+
+def _parse_shutter(text: str) -> float:
+    """gphoto2 shutter strings: "1/250", "0.5", "2", "30s"; anything else (bulb) → -1."""
+    t = text.strip().rstrip("s")
+    try:
+        if "/" in t:
+            num, den = t.split("/", 1)
+            return float(num) / float(den)
+        return float(t)
+    except ValueError:
+        return -1.0
+
+
+def gphoto2_camera(config: Any, clock: Any = None) -> Gphoto2Camera:
+    """Factory for `CAMERA_BACKENDS["gphoto2"]`."""
+    return Gphoto2Camera()

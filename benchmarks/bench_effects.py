@@ -1,0 +1,167 @@
+"""Benchmark: render-side cost of each optional simulator effect, ms per 64×64 capture.
+
+Each row renders the same random poses with the scene reused (one load, poses updated in place)
+at 1 spp and at 16 spp (``render.spp`` override) and reports the median ms per render, the extra
+over the point-lamp baseline at 1 spp, and the extra per additional sample per pixel — the two
+numbers `simulator.planner.EFFECT_MS_64` holds. The sensor stages are timed by switching each
+off in turn. Run:
+    .venv/bin/python benchmarks/bench_effects.py [--n 30] [--variant scalar_rgb]
+The table in docs/simulator.md is this script's output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from simulator.render import Renderer
+from simulator.scene import Scene, SensorSpec
+from simulator.sensor import Sensor
+
+__all__ = ["main", "effect_scenes", "bench_effects", "bench_stages"]
+
+PAPER = "/work/shared/data/rgl_brdf/paper_white_rgb.bsdf"
+
+
+def effect_scenes() -> dict[str, dict]:
+    """Scene overrides, one per effect, over a Lambertian 64×64 baseline with a point lamp."""
+    return {
+        "baseline (point, direct)": {},
+        "light_spot": {"light": {"type": "spot"}},
+        "light_area": {"light": {"type": "area"}},
+        "holder (black: shadows)": {"holder": {"rim_height_m": 0.005}},
+        "stray_light": {"stray_light": {"radiance_W_m2_sr": [0.05, 0.05, 0.05]}},
+        "path_integrator (rim ρ=0.5, 1 spp)": {
+            "holder": {"rim_height_m": 0.005, "reflectance": [0.5, 0.5, 0.5]},
+        },
+        "material: measured paper": {"material": {"type": "measured", "filename": PAPER}},
+        "material: model torrance-sparrow": {
+            "material": {
+                "type": "model",
+                "parameters": {"kd": 0.3, "ks": 0.5, "m": 0.2, "ior": 1.5},
+            }
+        },
+    }
+
+
+def _poses(n: int, rng: np.random.Generator):
+    th_i = rng.uniform(0, np.radians(70), n)
+    th_o = rng.uniform(0, np.radians(70), n)
+    ph_i = rng.uniform(0, 2 * np.pi, n)
+    ph_o = rng.uniform(0, 2 * np.pi, n)
+
+    def sph(t, p, r):
+        return r * np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
+
+    return sph(th_i, ph_i, 0.5), sph(th_o, ph_o, 0.7)
+
+
+def _renderer(overrides: dict, variant: str | None, spp: int) -> Renderer:
+    ov = dict(overrides)
+    ov["render"] = {**ov.get("render", {}), "spp": spp}
+    scene = Scene.model_validate({"camera": {"resolution": [64, 64], "fov_deg": 8.0}, **ov})
+    return Renderer(scene, variant=variant)
+
+
+def bench_effects(n: int, variant: str | None, spps=(1, 16)) -> dict[tuple[str, int], float]:
+    """ms per render (25th percentile over n poses) for every effect scene and spp.
+
+    All renderers are loaded and warmed first (the first render compiles kernels), then the
+    poses are rendered *interleaved* across renderers, so load from other processes on a shared
+    machine hits every configuration alike; the 25th percentile drops stalls.
+    """
+    lights, cams = _poses(n, np.random.default_rng(0))
+    rs = {}
+    for name, ov in effect_scenes().items():
+        for spp in spps:
+            r = _renderer(ov, variant, spp)
+            r.render(lights[0], cams[0])
+            r.render(lights[1], cams[1])
+            rs[(name, spp)] = r
+    times: dict[tuple[str, int], list[float]] = {k: [] for k in rs}
+    for k in range(n):
+        for key, r in rs.items():
+            t0 = time.perf_counter()
+            r.render(lights[k], cams[k])
+            times[key].append(time.perf_counter() - t0)
+    return {k: float(np.percentile(v, 25)) * 1e3 for k, v in times.items()}
+
+
+def bench_stages(n: int) -> dict[str, float]:
+    """ms per 64×64 capture of each optional sensor stage: the full pipeline minus the pipeline
+    with that stage switched off (interleaved captures, 25th percentile). Bayer comes out
+    negative: after it the later stages work on one plane instead of three."""
+    rad = np.full((64, 64, 3), 0.1, np.float32)
+    intr = {"fx": 400.0, "fy": 400.0, "cx": 31.5, "cy": 31.5}
+    on = {
+        "vignetting": True,
+        "bayer": "RGGB",
+        "prnu": 0.01,
+        "dark_current_e_s": 10.0,
+        "dsnu_e": 1.0,
+        "noise": True,
+        "read_noise_e": 3.0,
+    }
+    # stage -> spec keys that switch it off (shot noise: noise=False also drops read noise,
+    # so it is measured against a pipeline that already has no read noise).
+    variants = {
+        "all stages": {},
+        "vignetting": {"vignetting": False},
+        "bayer": {"bayer": None},
+        "prnu": {"prnu": 0.0},
+        "dark_current": {"dark_current_e_s": 0.0},
+        "dsnu": {"dsnu_e": 0.0},
+        "read_noise": {"read_noise_e": 0.0},
+        "shot_noise": {"noise": False, "read_noise_e": 0.0},
+    }
+    sensors = {
+        k: Sensor(SensorSpec(**{**on, **v}), 4.0, rng=0, intrinsics=intr)
+        for k, v in variants.items()
+    }
+    times: dict[str, list[float]] = {k: [] for k in sensors}
+    for _ in range(n):
+        for k, sensor in sensors.items():
+            t0 = time.perf_counter()
+            sensor.capture(rad, 0.01)
+            times[k].append(time.perf_counter() - t0)
+    p25 = {k: float(np.percentile(v, 25)) * 1e3 for k, v in times.items()}
+    out = {"all stages": p25["all stages"]}
+    for k in variants:
+        if k == "all stages":
+            continue
+        ref = p25["read_noise"] if k == "shot_noise" else p25["all stages"]
+        out[k] = ref - p25[k]
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=60)
+    ap.add_argument("--variant", default=None)
+    args = ap.parse_args(argv)
+    t = bench_effects(args.n, args.variant)
+    names = list(effect_scenes())
+    base = names[0]
+    print(f"variant: {Renderer(Scene()).variant}; 25th percentile of {args.n} poses, 64×64")
+    hdr = f"{'effect':<36}{'ms @1spp':>10}{'ms @16spp':>11}{'extra @1':>10}{'extra/spp':>11}"
+    print(hdr)
+    rows = {}
+    for name in names:
+        ms1, ms16 = t[(name, 1)], t[(name, 16)]
+        extra1 = ms1 - t[(base, 1)]
+        per_spp = ((ms16 - t[(base, 16)]) - extra1) / 15.0
+        rows[name] = (ms1, ms16, extra1, per_spp)
+        print(f"{name:<36}{ms1:>10.2f}{ms16:>11.2f}{extra1:>10.2f}{per_spp:>11.3f}")
+    base_per_spp = (t[(base, 16)] - t[(base, 1)]) / 15.0
+    print(f"{'(baseline, per extra spp)':<36}{'':>31}{base_per_spp:>11.3f}")
+    print()
+    print(f"{'sensor stage (64×64, 3 planes)':<38}{'ms':>10}")
+    for stage, ms in bench_stages(max(args.n, 200)).items():
+        print(f"{stage:<38}{ms:>10.3f}")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
