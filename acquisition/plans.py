@@ -19,6 +19,7 @@ __all__ = [
     "expand_grid",
     "order_poses",
     "park_targets",
+    "refine_around_peak",
     "tour_time_s",
 ]
 
@@ -246,3 +247,63 @@ def _park(rig: RigConfig, role: str) -> float:
 
 def park_targets(rig: RigConfig) -> dict[str, float]:
     return {a.role: _park(rig, a.role) for a in rig.axes}
+
+
+def refine_around_peak(
+    rig: RigConfig,
+    prescan: dict[Deg4, float],
+    *,
+    span_deg: float,
+    step_deg: float,
+    exposures_s: tuple[float, ...] | None = None,
+    name: str = "refine",
+) -> PlanConfig:
+    """Adaptive refinement: an explicit plan of fine poses around each incidence's peak.
+
+    `prescan` maps the poses of a quick coarse scan (θ_i, φ_i, θ_o, φ_o in degrees) to a
+    signal (e.g. the sample region's mean radiance per exposure time). For every incidence
+    (θ_i, φ_i) the brightest outgoing direction marks the peak; around it a grid in θ_o
+    (peak ± span, every `step_deg`) and in Δφ (± span, every step/ sin θ_o so the arc spacing on
+    the sphere stays ≈ `step_deg`) is laid. Poses already in the pre-scan, repeats, and poses
+    the rig cannot take are left out. `span_deg` should be about the pre-scan's spacing, so the
+    true peak — somewhere between two coarse samples — lies inside the refined patch.
+    """
+    if not (0 < step_deg <= span_deg):
+        raise ValueError(f"need 0 < step_deg ({step_deg}) <= span_deg ({span_deg})")
+    kin = Kinematics(rig)
+    incidences: dict[tuple[float, float], list[tuple[Deg4, float]]] = {}
+    for pose, value in prescan.items():
+        incidences.setdefault((pose[0], pose[1]), []).append((pose, float(value)))
+    n = int(math.floor(span_deg / step_deg + 1e-9))
+    offsets = [k * step_deg for k in range(-n, n + 1)]
+    fine: list[Deg4] = []
+    for (ti, pi), rows in incidences.items():
+        (_, _, to_peak, po_peak), _ = max(rows, key=lambda r: r[1])
+        for dto in offsets:
+            to = to_peak + dto
+            if not 0.0 <= to < 90.0:
+                continue
+            # Δφ step for an arc of ≈ step_deg at this θ_o (capped at the pole).
+            dphi_step = min(step_deg / max(math.sin(math.radians(to)), 1e-9), 360.0)
+            m = int(math.floor(span_deg / dphi_step + 1e-9)) if to > 0 else 0
+            for k in range(-m, m + 1):
+                fine.append((ti, pi, round(to, 9), round((po_peak + k * dphi_step) % 360.0, 9)))
+    known = set(_unique_directions(list(prescan)))
+    poses = []
+    for deg in _unique_directions(fine):
+        if deg in known or _unique_directions([*known, deg])[-1] != deg:
+            continue
+        try:
+            kin.check(Pose.from_deg(*deg))
+        except Unreachable:
+            continue
+        poses.append(deg)
+    if not poses:
+        raise Unreachable("refinement: no new reachable pose around the peak")
+    first = next(iter(prescan), None)
+    return PlanConfig(
+        name=name,
+        type="explicit",
+        poses_deg=tuple(poses),
+        exposures_s=exposures_s or (0.002,),
+    ) if first is not None else PlanConfig(name=name, type="explicit", poses_deg=tuple(poses))

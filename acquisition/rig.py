@@ -139,6 +139,44 @@ def clear_alerts(bus: Any, ids: list[int]) -> list[str]:
     return notes
 
 
+def _restoring_bus_class() -> type:
+    """DynamixelBus that puts a rebooted servo's motion profile back before torque returns.
+
+    Why: REBOOT resets every RAM register, and Profile Velocity/Acceleration (112/108) are RAM;
+    the default 0 means "as fast as the Velocity Limit allows" (≈ 3× the sim rig's profile).
+    DynamixelBus's on_alert="reboot" restores torque and the goal only, so the arm would race
+    to its goal. Here every profile write is remembered, and replayed when torque is enabled
+    again on a servo that was rebooted. (Belongs in DynamixelBus._recover; kept here until it
+    moves there.)
+    """
+    from acquisition.dynamixel import ADDR, DynamixelBus
+
+    profile_addrs = (ADDR["profile_acceleration"], ADDR["profile_velocity"])
+
+    class _Bus(DynamixelBus):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            self._profiles: dict[int, dict[int, int]] = {}
+            self._rebooted: set[int] = set()
+            super().__init__(*args, **kwargs)
+
+        def reboot(self, servo_id: int) -> None:
+            super().reboot(servo_id)
+            self._rebooted.add(servo_id)
+
+        def write(
+            self, servo_id: int, addr: int, size: int, value: int, *, check_alert: bool = True
+        ) -> None:
+            if addr == ADDR["torque_enable"] and value and servo_id in self._rebooted:
+                self._rebooted.discard(servo_id)
+                for a, v in self._profiles.get(servo_id, {}).items():
+                    super().write(servo_id, a, 4, v, check_alert=False)
+            super().write(servo_id, addr, size, value, check_alert=check_alert)
+            if addr in profile_addrs and size == 4:
+                self._profiles.setdefault(servo_id, {})[addr] = int(value)
+
+    return _Bus
+
+
 def build_rig(config: RigConfig, *, reboot_alerted: bool = True) -> Rig:
     """Open the bus, axes, light and camera named by the config.
 
@@ -146,11 +184,11 @@ def build_rig(config: RigConfig, *, reboot_alerted: bool = True) -> Rig:
     before the axes are set up; profile registers are written afterwards, so a reboot (which
     resets RAM) loses nothing.
     """
-    from acquisition.dynamixel import DynamixelAxis, DynamixelBus, move_together, read_positions
+    from acquisition.dynamixel import DynamixelAxis, move_together, read_positions
     from acquisition.light import SerialLight
 
     clock = get_clock(config.clock)
-    bus = DynamixelBus(
+    bus = _restoring_bus_class()(
         config.bus.url,
         baudrate=config.bus.baudrate,
         retries=config.bus.retries,

@@ -12,6 +12,7 @@ The table in docs/simulator.md is this script's output.
 from __future__ import annotations
 
 import argparse
+import gc
 import time
 
 import numpy as np
@@ -68,25 +69,27 @@ def _renderer(overrides: dict, variant: str | None, spp: int) -> Renderer:
 def bench_effects(n: int, variant: str | None, spps=(1, 16)) -> dict[tuple[str, int], float]:
     """ms per render (25th percentile over n poses) for every effect scene and spp.
 
-    All renderers are loaded and warmed first (the first render compiles kernels), then the
-    poses are rendered *interleaved* across renderers, so load from other processes on a shared
-    machine hits every configuration alike; the 25th percentile drops stalls.
+    One renderer alive at a time, as in the simulated camera: drjit's symbolic calls trace every
+    live BSDF/emitter instance, so keeping many scenes alive would slow them all down. Each is
+    warmed first (the first render compiles kernels); the 25th percentile drops the stalls a
+    shared machine causes.
     """
     lights, cams = _poses(n, np.random.default_rng(0))
-    rs = {}
+    out = {}
     for name, ov in effect_scenes().items():
         for spp in spps:
             r = _renderer(ov, variant, spp)
             r.render(lights[0], cams[0])
             r.render(lights[1], cams[1])
-            rs[(name, spp)] = r
-    times: dict[tuple[str, int], list[float]] = {k: [] for k in rs}
-    for k in range(n):
-        for key, r in rs.items():
-            t0 = time.perf_counter()
-            r.render(lights[k], cams[k])
-            times[key].append(time.perf_counter() - t0)
-    return {k: float(np.percentile(v, 25)) * 1e3 for k, v in times.items()}
+            times = []
+            for k in range(n):
+                t0 = time.perf_counter()
+                r.render(lights[k], cams[k])
+                times.append(time.perf_counter() - t0)
+            out[(name, spp)] = float(np.percentile(times, 25)) * 1e3
+            del r
+            gc.collect()
+    return out
 
 
 def bench_stages(n: int) -> dict[str, float]:
@@ -141,8 +144,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--n", type=int, default=60)
     ap.add_argument("--variant", default=None)
     args = ap.parse_args(argv)
-    t = bench_effects(args.n, args.variant)
     names = list(effect_scenes())
+    t = bench_effects(args.n, args.variant)
     base = names[0]
     print(f"variant: {Renderer(Scene()).variant}; 25th percentile of {args.n} poses, 64×64")
     hdr = f"{'effect':<36}{'ms @1spp':>10}{'ms @16spp':>11}{'extra @1':>10}{'extra/spp':>11}"

@@ -117,6 +117,8 @@ def acquire(
             if world is not None:
                 doc["scene"] = _clean(world.scene.model_dump(mode="json"))
             store = RunStore.create(out, tomli_w.dumps(doc))
+        if world is not None:
+            _record_sim_calibration_frames(out, world, plan_cfg.exposures_s)
         with stop_requests() as flag:
             outcome = run_acquisition(store, rig_dev, plan, progress=progress, stop=flag)
     finally:
@@ -124,6 +126,22 @@ def acquire(
         if store is not None:
             store.close()
     return AcquireResult(out, outcome, resumed, time.perf_counter() - t0, lab_estimate)
+
+
+def _record_sim_calibration_frames(out: Path, world: Any, exposures_s: tuple[float, ...]) -> None:
+    """Master darks (one set per exposure) and a flat field, recorded before the first pose as
+    a lab would — only when the simulated sensor has an effect they correct (dark current,
+    DSNU, PRNU, vignetting); a run that already has them (a resumed run) keeps its own."""
+    from calibration.darks import calibration_frames, record_frames
+
+    s = world.scene.sensor
+    if not (s.vignetting or s.prnu > 0 or s.dark_current_e_s > 0 or s.dsnu_e > 0):
+        return
+    cam = world.camera
+    if not calibration_frames(out, "dark"):
+        record_frames(out, "dark", cam.capture_dark, list(exposures_s), 16)
+    if not calibration_frames(out, "flat"):
+        record_frames(out, "flat", cam.capture_flat, [max(exposures_s)], 32)
 
 
 def _sample_size(world: Any) -> float:

@@ -16,6 +16,7 @@ cosine-weighted (pdf = cos θ/π), which is exact for the diffuse part and unbia
 from __future__ import annotations
 
 import json
+import weakref
 
 import numpy as np
 
@@ -34,6 +35,7 @@ from simulator.scene import (
 __all__ = [
     "material_dict",
     "needs_wavefront",
+    "model_bsdfs_alive",
     "iter_materials",
     "register_model_bsdf",
     "model_channel_parameters",
@@ -56,7 +58,9 @@ def iter_materials(material):
 
 
 def needs_wavefront(material) -> bool:
-    """True if any (nested) material is a Python-wrapped model (see module docstring)."""
+    """True if any (nested) material is a Python-wrapped model (see module docstring).
+
+    Other scenes need wavefront mode too while such a BSDF is alive: `model_bsdfs_alive`."""
     return any(isinstance(m, ModelMaterial) for m in iter_materials(material))
 
 
@@ -137,6 +141,15 @@ def model_channel_parameters(material: ModelMaterial) -> list[dict[str, float]]:
 
 
 _REGISTERED: set[str] = set()
+# Live ModelBSDF instances. drjit's *symbolic* virtual calls trace every registered instance of a
+# class — so while any Python-model BSDF exists, *every* scene's BSDF call would trace it (and its
+# numpy conversion fails). The renderer therefore switches to wavefront mode while one is alive.
+_LIVE_MODEL_BSDFS: weakref.WeakSet = weakref.WeakSet()
+
+
+def model_bsdfs_alive() -> bool:
+    """True while any Python-model BSDF instance exists in this process."""
+    return len(_LIVE_MODEL_BSDFS) > 0
 
 
 def register_model_bsdf() -> None:
@@ -179,6 +192,7 @@ def register_model_bsdf() -> None:
             )
             self.m_components = [self.m_flags]
             self.eval_calls = 0
+            _LIVE_MODEL_BSDFS.add(self)
 
         def _f_cos(self, si, wo):
             """f_r(to light = wo, to camera = si.wi)·cos θ_wo per channel, numpy (N, 3)."""

@@ -34,7 +34,7 @@ from collections import Counter
 
 import numpy as np
 
-from simulator.materials import material_dict, needs_wavefront
+from simulator.materials import material_dict, model_bsdfs_alive, needs_wavefront
 from simulator.scene import Scene
 from simulator.variant import ensure_variant
 
@@ -283,8 +283,9 @@ class Renderer:
         }
 
     def _with_flags(self, fn, *args, **kwargs):
-        """Call ``fn`` in drjit wavefront mode if a Python-model BSDF needs concrete arrays."""
-        if not self._wavefront or self.variant.startswith("scalar"):
+        """Call ``fn`` in drjit wavefront mode if a Python-model BSDF needs concrete arrays —
+        this scene's, or any other alive in the process (symbolic calls trace every instance)."""
+        if self.variant.startswith("scalar") or not (self._wavefront or model_bsdfs_alive()):
             return fn(*args, **kwargs)
         import drjit as dr
 

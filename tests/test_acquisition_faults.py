@@ -325,3 +325,28 @@ def test_folder_backend_in_a_run_stores_vendor_bytes(tmp_path: Path) -> None:
     assert ("stop", out.reason) in [(k, m) for _, k, m in store.events()]
     _safe_state(world, cfg2)
     store.close()
+
+
+def test_overload_with_on_alert_reboot_recovers_and_completes(tmp_path: Path) -> None:
+    """on_alert = "reboot": the driver reboots the servo, restores torque and goal, and the
+    run goes on (a transient overload, e.g. a cable snag)."""
+    with sim_session(tmp_path, on_alert="reboot") as s:
+        sick = s.config.axis("light_phi").id
+
+        def inject(n: int) -> None:
+            if n == 4:
+                s.world.bus.inject_alert(sick, "overload")  # not persistent: REBOOT clears it
+
+        rig = s.rig()
+        try:
+            out = run_acquisition(s.store, rig, s.plan, progress=False, on_capture=inject)
+            reboots = rig.axes["light_phi"].bus.stats["reboots"]
+        finally:
+            rig.close()
+        assert out.complete, out.reason
+        assert reboots == 1
+        _assert_all_data(s.store)
+        # Profile registers are RAM: after the reboot the axis must still move at the
+        # configured profile (the emulator's register is the truth).
+        ax = s.config.axis("light_phi")
+        assert s.world.bus.servo(sick).register("profile_velocity") == ax.profile_velocity

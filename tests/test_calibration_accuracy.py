@@ -14,14 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquisition.clock import VirtualClock
 from acquisition.config import PlanConfig
-from calibration.darks import record_frames
+from calibration.darks import calibration_frames
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting.directions import spherical_to_vector
 from fitting.samples import Flags
 from gonio.pipeline import acquire
-from simulator.camera import SimCamera
 from simulator.render import Renderer
 from simulator.scene import load_scene
 
@@ -54,14 +52,11 @@ def raw_run(tmp_path_factory: pytest.TempPathFactory):
         plan_config=plan,
     )
     assert res.outcome.complete
-    scene = load_scene(SCENE)
-    renderer = Renderer(scene)
-    # The same simulated camera body: a Sensor seeded like the rig's, so its fixed-pattern maps
-    # (PRNU, DSNU) are the ones the measurement frames saw — as a lab shoots darks and flats
-    # with the camera that took the data.
-    cam = SimCamera(scene, VirtualClock(), lambda: (None, None), lambda: 1.0, renderer=renderer)
-    record_frames(out, "dark", cam.capture_dark, EXPOSURES_S, 16)
-    record_frames(out, "flat", cam.capture_flat, [FLAT_EXPOSURE_S], 32)
+    # acquire() recorded master darks (per exposure) and a flat before the first pose, with the
+    # same simulated camera body, as a lab shoots them with the camera that takes the data.
+    assert {e["exposure_s"] for e in calibration_frames(out, "dark")} == set(EXPOSURES_S)
+    assert {e["exposure_s"] for e in calibration_frames(out, "flat")} == {FLAT_EXPOSURE_S}
+    renderer = Renderer(load_scene(SCENE))
     return out, renderer
 
 
@@ -110,3 +105,57 @@ def test_without_flat_and_darks_the_vignetting_shows(raw_run, tmp_path) -> None:
     # cos⁴ darkens the sample's pixels by 0.1-0.6% (ρ ≤ 0.003 here): a bias of a fraction of σ
     # at SNR 50-200, which the acceptance criteria above (|mean z| ≤ 0.1) must catch.
     assert not (abs(np.mean(z)) <= 0.1 and 0.8 <= np.std(z) <= 1.25), (np.mean(z), np.std(z))
+
+
+def test_master_darks_match_the_sensor_spec(raw_run) -> None:
+    """Master dark − black = the mean dark electrons, and the temporal variance is
+    (σ_read² + μ_dark)/K² + 1/12 (Poisson + read + quantisation): EMVA 1288 with the scene's own
+    numbers. The sensor keeps the electron mean ≥ 0, so with DSNU σ_D the pixel-averaged mean is
+    E[max(μ, 0)], μ ~ N(dark·t, σ_D²): m Φ(m/σ_D) + σ_D φ(m/σ_D) (a clipped normal)."""
+    from scipy.stats import norm
+
+    from calibration.darks import load_darks
+
+    run, _ = raw_run
+    s = load_scene(SCENE).sensor
+    darks = load_darks(run)
+    assert sorted(darks.masters) == EXPOSURES_S
+    for t, m in darks.masters.items():
+        mu = s.dark_current_e_s * t
+        mean_expect = mu * norm.cdf(mu / s.dsnu_e) + s.dsnu_e * norm.pdf(mu / s.dsnu_e)
+        mean_e = (m.dn.mean() - s.black_level_dn) * s.gain_e_per_dn
+        # Mean over 4096 pixels of a 16-frame mean: DSNU (5 e) averages to 5/64 ≈ 0.08 e,
+        # temporal noise to ≈ 0.02 e; allow 0.4 e.
+        assert abs(mean_e - mean_expect) < 0.4, (t, mean_e, mean_expect)
+        expect = (s.read_noise_e**2 + mean_expect) / s.gain_e_per_dn**2 + 1 / 12
+        # Pixel-averaged unbiased variance from 16 frames: relative error ≈ √(2/15/4096) ≈ 0.6%.
+        assert abs(m.temporal_var_dn2 / expect - 1.0) < 0.05, (t, m.temporal_var_dn2, expect)
+
+
+def test_flat_field_is_cos4_times_prnu(raw_run) -> None:
+    """The measured flat divided by the sensor model's own cos⁴ (simulator.sensor) leaves only
+    the PRNU: mean 1, scatter ≈ the scene's PRNU σ (plus the flat's shot noise)."""
+    from acquisition.store import RunStore
+    from calibration.darks import load_darks
+    from calibration.flatfield import load_flat
+    from calibration.geometry import Intrinsics
+    from calibration.radiometry import CameraRadiometry
+    from simulator.sensor import cos4_vignetting
+
+    run, renderer = raw_run
+    cam = RunStore.open(run).run_config()["camera"]
+    flat = load_flat(
+        run,
+        load_darks(run),
+        CameraRadiometry.from_description(cam),
+        Intrinsics.from_description(cam),
+    )
+    ratio = flat.gain / cos4_vignetting(flat.gain.shape, renderer.intrinsics)
+    prnu = load_scene(SCENE).sensor.prnu
+    shot = float(np.sqrt(np.mean(flat.rel_var)))
+    # Mean of 4096 PRNU draws: ±0.005/64 ≈ 8e-5; allow 5e-4.
+    assert abs(ratio.mean() - 1.0) < 5e-4
+    expected_sd = np.hypot(prnu, shot)
+    assert abs(ratio.std() / expected_sd - 1.0) < 0.1, (ratio.std(), expected_sd)
+    # And the vignetting is really there to be removed (corner cos⁴ ≈ 0.98).
+    assert flat.gain.min() < 0.985

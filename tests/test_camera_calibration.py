@@ -11,12 +11,12 @@ Ground truth is never our own calibration code:
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from conftest import find_shared_data
 
 from calibration.camera_model import (
     RESULT_KEYS,
@@ -47,21 +47,7 @@ DIST = (-0.1, 0.0, 0.0, 0.0, 0.0)
 
 
 def shared_data_dir() -> Path:
-    """The shared data directory: $GONIO_SHARED_DATA, else a `shared/data` beside the clone
-    or one of its parents, else /work/shared/data. Missing data is a failure, not a skip."""
-    candidates = []
-    if os.environ.get("GONIO_SHARED_DATA"):
-        candidates.append(Path(os.environ["GONIO_SHARED_DATA"]))
-    candidates += [p / "shared" / "data" for p in (REPO, *REPO.parents)]
-    candidates.append(Path("/work/shared/data"))
-    for c in candidates:
-        if (c / "calibration_chessboard").is_dir():
-            return c
-    pytest.fail(
-        "shared data not found (looked for calibration_chessboard/ in "
-        + ", ".join(str(c) for c in candidates)
-        + "); set GONIO_SHARED_DATA to the shared/data directory"
-    )
+    return find_shared_data()
 
 
 def rotation_xyz_deg(ax: float, ay: float, az: float) -> np.ndarray:

@@ -150,3 +150,16 @@ def test_model_bsdf_render_matches_fitting_evaluate(name, options, params):
 def test_model_bsdf_missing_parameter_is_an_error():
     with pytest.raises(Exception, match="set parameters"):
         Renderer(_flat_scene(ModelMaterial(model="torrance-sparrow", parameters={"kd": 0.3})))
+
+
+def test_builtin_scene_renders_while_a_model_bsdf_is_alive():
+    # drjit's symbolic virtual calls trace every live BSDF instance, so a live Python BSDF used
+    # to break *other* scenes; the renderer must switch them to wavefront mode.
+    keep = Renderer(_flat_scene(ModelMaterial(model="lambert", parameters={"kd": 0.5})))
+    r = Renderer(_flat_scene({"type": "diffuse", "reflectance": [0.5, 0.5, 0.5]}))
+    light, cam = _sph(30.0, 0.0, 0.5), _sph(20.0, 90.0, 0.7)
+    img = r.render(light, cam)
+    m, truth = _point_lit_truth(r, light, cam, lambda wi, wo: np.full((len(wi), 3), 0.5 / np.pi))
+    np.testing.assert_allclose(img[m], truth, rtol=1e-3)
+    # and the model scene agrees with it (Lambert kd = ρ): the same physics through both BSDFs.
+    np.testing.assert_allclose(keep.render(light, cam), img, rtol=1e-5)
