@@ -58,19 +58,24 @@ def _steps(step: float, stop: float, inclusive: bool) -> tuple[float, ...]:
 def _unique_directions(poses: list[Deg4]) -> list[Deg4]:
     """Drop poses that repeat an earlier one: at θ = 0 every φ is the same direction (pole),
     and φ is taken mod 360°. Order is kept, so pose indices stay stable."""
-    seen: set[tuple[float, float, float, float]] = set()
+    seen: set[Deg4] = set()
     out = []
-    for ti, pi, to, po in poses:
-        key = (
-            round(ti, 9),
-            0.0 if ti == 0 else round(pi % 360.0, 9),
-            round(to, 9),
-            0.0 if to == 0 else round(po % 360.0, 9),
-        )
+    for pose in poses:
+        key = _direction_key(pose)
         if key not in seen:
             seen.add(key)
-            out.append((ti, pi, to, po))
+            out.append(pose)
     return out
+
+
+def _direction_key(pose: Deg4) -> Deg4:
+    ti, pi, to, po = pose
+    return (
+        round(ti, 9),
+        0.0 if ti == 0 else round(pi % 360.0, 9),
+        round(to, 9),
+        0.0 if to == 0 else round(po % 360.0, 9),
+    )
 
 
 def _rusinkiewicz(cfg: PlanConfig) -> list[Deg4]:
@@ -155,8 +160,9 @@ def _roles(rig: RigConfig) -> list[str]:
 
 
 def order_poses(rig: RigConfig, vectors: np.ndarray, start: np.ndarray) -> list[int]:
-    """Travel-optimal order: nearest neighbour from the start pose, then 2-opt on the
-    move-time metric (moves are symmetric in time, so segment reversal is valid)."""
+    """Travel-optimal order: nearest neighbour from the start pose, then 2-opt and Or-opt
+    until neither improves, on the move-time metric of `acquisition.motion` (all axes move
+    together; a leg lasts as long as its slowest axis)."""
     n = len(vectors)
     if n <= 2:
         return list(range(n))
@@ -172,25 +178,63 @@ def order_poses(rig: RigConfig, vectors: np.ndarray, start: np.ndarray) -> list[
         nxt = int(np.argmin(c))
         tour.append(nxt)
         left[nxt] = False
-    # 2-opt (open path: reversing tour[i..j] changes edges (i-1,i) and (j,j+1)).
-    t = np.array(tour)
-    improved = True
-    while improved:
-        improved = False
-        for i in range(0, n - 1):
-            a_prev = start_cost[t[i]] if i == 0 else cost[t[i - 1], t[i]]
-            prev_node = None if i == 0 else t[i - 1]
-            js = np.arange(i + 1, n)
-            old = a_prev + np.where(js < n - 1, cost[t[js], t[np.minimum(js + 1, n - 1)]], 0.0)
-            new_first = start_cost[t[js]] if prev_node is None else cost[prev_node, t[js]]
-            new = new_first + np.where(js < n - 1, cost[t[i], t[np.minimum(js + 1, n - 1)]], 0.0)
-            gain = old - new
-            k = int(np.argmax(gain))
-            if gain[k] > 1e-9:
-                j = js[k]
-                t[i : j + 1] = t[i : j + 1][::-1].copy()
+    # Local search on the open path start → tour → (free end). Two dummy nodes make it a
+    # fixed-ends path: n = the start pose, n + 1 = the end (every edge into it costs 0), so
+    # both moves below are plain edge exchanges on one cost matrix `C`.
+    c_full = np.zeros((n + 2, n + 2))
+    c_full[:n, :n] = cost
+    c_full[n, :n] = c_full[:n, n] = start_cost
+    path = np.array([n, *tour, n + 1])
+    while _two_opt(c_full, path) | _or_opt(c_full, path):
+        pass
+    return path[1:-1].tolist()
+
+
+def _two_opt(c: np.ndarray, p: np.ndarray) -> bool:
+    """2-opt: reverse p[i..j] when that shortens the path (moves are symmetric in time, so a
+    reversed segment costs what it did). Changes edges (i−1, i) and (j, j+1). In place."""
+    m = len(p) - 1  # p[0] and p[m] are fixed
+    improved = False
+    for i in range(1, m - 1):
+        js = np.arange(i + 1, m)
+        gain = (
+            c[p[i - 1], p[i]] + c[p[js], p[js + 1]] - c[p[i - 1], p[js]] - c[p[i], p[js + 1]]
+        )
+        k = int(np.argmax(gain))
+        if gain[k] > 1e-9:
+            j = js[k]
+            p[i : j + 1] = p[i : j + 1][::-1].copy()
+            improved = True
+    return improved
+
+
+def _or_opt(c: np.ndarray, p: np.ndarray, max_len: int = 3) -> bool:
+    """Or-opt (Or 1976): move a run of 1..3 poses, possibly reversed, to the best other gap.
+    Catches what 2-opt cannot: a pose stranded far from its neighbours. In place."""
+    improved = False
+    for length in range(1, max_len + 1):
+        i = 1
+        while i + length < len(p):  # segment p[i : i + length], p[-1] stays fixed
+            e = i + length - 1
+            a, b = p[i - 1], p[e + 1]
+            s0, s1 = p[i], p[e]
+            removal = c[a, s0] + c[s1, b] - c[a, b]
+            rest = np.concatenate([p[:i], p[e + 1 :]])
+            x, y = rest[:-1], rest[1:]
+            fwd = c[x, s0] + c[s1, y] - c[x, y]
+            rev = c[x, s1] + c[s0, y] - c[x, y]
+            fwd[i - 1] = np.inf  # the segment's own gap is not a move
+            best_f, best_r = int(np.argmin(fwd)), int(np.argmin(rev))
+            use_rev = rev[best_r] < fwd[best_f]
+            k = best_r if use_rev else best_f
+            gain = removal - (rev[k] if use_rev else fwd[k])
+            if gain > 1e-9:
+                seg = p[i : e + 1][::-1] if use_rev else p[i : e + 1]
+                p[:] = np.concatenate([rest[: k + 1], seg, rest[k + 1 :]])
                 improved = True
-    return t.tolist()
+            else:
+                i += 1
+    return improved
 
 
 def build_plan(rig: RigConfig, cfg: PlanConfig, start_rad: dict[str, float] | None = None) -> Plan:
@@ -288,10 +332,10 @@ def refine_around_peak(
             m = int(math.floor(span_deg / dphi_step + 1e-9)) if to > 0 else 0
             for k in range(-m, m + 1):
                 fine.append((ti, pi, round(to, 9), round((po_peak + k * dphi_step) % 360.0, 9)))
-    known = set(_unique_directions(list(prescan)))
+    known = {_direction_key(p) for p in prescan}
     poses = []
     for deg in _unique_directions(fine):
-        if deg in known or _unique_directions([*known, deg])[-1] != deg:
+        if _direction_key(deg) in known:
             continue
         try:
             kin.check(Pose.from_deg(*deg))
@@ -300,10 +344,6 @@ def refine_around_peak(
         poses.append(deg)
     if not poses:
         raise Unreachable("refinement: no new reachable pose around the peak")
-    first = next(iter(prescan), None)
     return PlanConfig(
-        name=name,
-        type="explicit",
-        poses_deg=tuple(poses),
-        exposures_s=exposures_s or (0.002,),
-    ) if first is not None else PlanConfig(name=name, type="explicit", poses_deg=tuple(poses))
+        name=name, type="explicit", poses_deg=tuple(poses), exposures_s=exposures_s or (0.002,)
+    )

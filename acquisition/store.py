@@ -14,13 +14,14 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
-import os
 import sqlite3
 import tomllib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from fitting.atomic import atomic_write_bytes as _atomic_write_bytes
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -43,31 +44,10 @@ def now_iso() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def atomic_write_bytes(path: Path, data: bytes, *, overwrite: bool = False) -> None:
-    """Temp file in the same directory, fsync, then link (no overwrite) or replace."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        if overwrite:
-            os.replace(tmp, path)
-        else:
-            os.link(tmp, path)  # FileExistsError instead of silently replacing
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    _fsync_dir(path.parent)
+    """Temp file in the same directory, fsync, then link (no overwrite, the default for run
+    data) or replace."""
+    _atomic_write_bytes(path, data, overwrite=overwrite)
 
 
 def sha256_file(path: Path) -> str:

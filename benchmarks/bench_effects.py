@@ -14,16 +14,19 @@ from __future__ import annotations
 import argparse
 import gc
 import time
+from pathlib import Path
 
 import numpy as np
 
+from simulator.planner import plan_effects
 from simulator.render import Renderer
-from simulator.scene import Scene, SensorSpec
+from simulator.scene import Scene, SensorSpec, load_scene
 from simulator.sensor import Sensor
 
 __all__ = ["main", "effect_scenes", "bench_effects", "bench_stages"]
 
 PAPER = "/work/shared/data/rgl_brdf/paper_white_rgb.bsdf"
+SCENES = Path(__file__).resolve().parent.parent / "configs" / "scenes"
 
 
 def effect_scenes() -> dict[str, dict]:
@@ -67,11 +70,11 @@ def _renderer(overrides: dict, variant: str | None, spp: int) -> Renderer:
 
 
 def bench_effects(n: int, variant: str | None, spps=(1, 16)) -> dict[tuple[str, int], float]:
-    """ms per render (25th percentile over n poses) for every effect scene and spp.
+    """ms per render (minimum over n poses) for every effect scene and spp.
 
     One renderer alive at a time, as in the simulated camera: drjit's symbolic calls trace every
     live BSDF/emitter instance, so keeping many scenes alive would slow them all down. Each is
-    warmed first (the first render compiles kernels); the 25th percentile drops the stalls a
+    warmed first (the first render compiles kernels); the minimum drops the stalls a
     shared machine causes.
     """
     lights, cams = _poses(n, np.random.default_rng(0))
@@ -86,15 +89,31 @@ def bench_effects(n: int, variant: str | None, spps=(1, 16)) -> dict[tuple[str, 
                 t0 = time.perf_counter()
                 r.render(lights[k], cams[k])
                 times.append(time.perf_counter() - t0)
-            out[(name, spp)] = float(np.percentile(times, 25)) * 1e3
+            out[(name, spp)] = float(np.min(times)) * 1e3
             del r
             gc.collect()
     return out
 
 
+def render_capture_ms(scene: Scene, n: int, variant: str | None) -> float:
+    """minimum ms of render + sensor capture for a whole scene at its planned settings."""
+    r = Renderer(scene, variant=variant)
+    sensor = Sensor(scene.sensor, scene.camera.f_number, rng=0, intrinsics=r.intrinsics)
+    lights, cams = _poses(n, np.random.default_rng(0))
+    sensor.capture(r.render(lights[0], cams[0]), 0.01)
+    times = []
+    for k in range(n):
+        t0 = time.perf_counter()
+        sensor.capture(r.render(lights[k], cams[k]), 0.01)
+        times.append(time.perf_counter() - t0)
+    del r
+    gc.collect()
+    return float(np.min(times)) * 1e3
+
+
 def bench_stages(n: int) -> dict[str, float]:
     """ms per 64×64 capture of each optional sensor stage: the full pipeline minus the pipeline
-    with that stage switched off (interleaved captures, 25th percentile). Bayer comes out
+    with that stage switched off (interleaved captures, minimum over n). Bayer comes out
     negative: after it the later stages work on one plane instead of three."""
     rad = np.full((64, 64, 3), 0.1, np.float32)
     intr = {"fx": 400.0, "fy": 400.0, "cx": 31.5, "cy": 31.5}
@@ -129,7 +148,7 @@ def bench_stages(n: int) -> dict[str, float]:
             t0 = time.perf_counter()
             sensor.capture(rad, 0.01)
             times[k].append(time.perf_counter() - t0)
-    p25 = {k: float(np.percentile(v, 25)) * 1e3 for k, v in times.items()}
+    p25 = {k: float(np.min(v)) * 1e3 for k, v in times.items()}
     out = {"all stages": p25["all stages"]}
     for k in variants:
         if k == "all stages":
@@ -147,7 +166,7 @@ def main(argv: list[str] | None = None) -> dict:
     names = list(effect_scenes())
     t = bench_effects(args.n, args.variant)
     base = names[0]
-    print(f"variant: {Renderer(Scene()).variant}; 25th percentile of {args.n} poses, 64×64")
+    print(f"variant: {Renderer(Scene()).variant}; minimum over {args.n} poses, 64×64")
     hdr = f"{'effect':<36}{'ms @1spp':>10}{'ms @16spp':>11}{'extra @1':>10}{'extra/spp':>11}"
     print(hdr)
     rows = {}
@@ -159,6 +178,16 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"{name:<36}{ms1:>10.2f}{ms16:>11.2f}{extra1:>10.2f}{per_spp:>11.3f}")
     base_per_spp = (t[(base, 16)] - t[(base, 1)]) / 15.0
     print(f"{'(baseline, per extra spp)':<36}{'':>31}{base_per_spp:>11.3f}")
+    print()
+    # Effects combined, at the planned spp/depth: the planner's estimate against the measurement.
+    for path in sorted(SCENES.glob("*.toml")):
+        scene = load_scene(path)
+        plan = plan_effects(scene, variant=args.variant)
+        ms = render_capture_ms(scene, args.n, args.variant)
+        print(
+            f"{path.name:<22} {plan.integrator:>6} depth {plan.max_depth:<2} spp {plan.spp:<4}"
+            f" planned {plan.total_ms:7.2f} ms   measured {ms:7.2f} ms (render + sensor)"
+        )
     print()
     print(f"{'sensor stage (64×64, 3 planes)':<38}{'ms':>10}")
     for stage, ms in bench_stages(max(args.n, 200)).items():

@@ -20,7 +20,6 @@ scaled to 8 bits first.
 from __future__ import annotations
 
 import json
-import os
 import re
 import warnings
 from collections.abc import Mapping, Sequence
@@ -29,6 +28,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from fitting.atomic import atomic_write_bytes
 
 __all__ = [
     "BoardSpec",
@@ -404,12 +405,7 @@ def write_result_json(result: Mapping, path: Path | str) -> None:
     interrupted write never leaves a half-written file behind."""
     path = Path(path)
     payload = {key: result[key] for key in RESULT_KEYS}
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        tmp.write_text(json.dumps(payload, indent=2) + "\n")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    atomic_write_bytes(path, (json.dumps(payload, indent=2) + "\n").encode())
 
 
 def format_result(result: Mapping) -> str:

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.decode import FrameError, decode_frame
+from fitting.atomic import atomic_write_bytes
 
 __all__ = [
     "CalibrationFrameError",
@@ -55,12 +55,7 @@ class CalibrationFrameError(ValueError):
 
 def _atomic_write(path: Path, data: bytes) -> None:
     # temp file + fsync + rename: a crash never leaves a half-written frame or index.
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    atomic_write_bytes(path, data)
 
 
 def calibration_frames(run_dir: str | Path, kind: str | None = None) -> list[dict]:

@@ -21,6 +21,8 @@ import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from fitting.atomic import atomic_write_bytes
+
 __all__ = [
     "FIT_SCHEMA_VERSION",
     "PARAMETER_KEYS",
@@ -90,19 +92,8 @@ class FitResult:
 
     def write(self, path: str | os.PathLike) -> Path:
         """Write atomically: temp file in the same directory, fsync, rename."""
-        path = Path(path)
-        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        try:
-            with open(tmp, "w") as fh:
-                json.dump(self.to_dict(), fh, indent=2, allow_nan=False)
-                fh.write("\n")
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
-        return path
+        text = json.dumps(self.to_dict(), indent=2, allow_nan=False) + "\n"
+        return atomic_write_bytes(path, text.encode())
 
 
 def read_fit(path: str | os.PathLike) -> FitResult:

@@ -14,6 +14,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from fitting.atomic import atomic_write_with
 from fitting.directions import spherical_to_vector
 
 __all__ = [
@@ -150,15 +151,7 @@ def write_samples(path: str | os.PathLike, table: SampleTable) -> Path:
     arrow = pa.table(cols).replace_schema_metadata(
         {k.encode(): v.encode() for k, v in meta.items()}
     )
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        pq.write_table(arrow, tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    atomic_write_with(path, lambda fh: pq.write_table(arrow, fh))
     return path
 
 

@@ -23,7 +23,9 @@ Rules (docs/simulator.md has the full table):
 - sensor stages: exactly those ``Sensor.enabled_stages`` runs for the scene's sensor spec.
 
 Costs are per capture, in ms: measured per-effect constants for a 64×64 capture from
-``benchmarks/bench_effects.py`` (2-core dev machine, Nov 2026), scaled by pixel count and spp.
+``benchmarks/bench_effects.py`` (2-core dev machine, Nov 2026) — a fixed extra plus an extra per
+additional sample per pixel — scaled by pixel count (and, for scalar_rgb, by its per-pixel
+slowdown). Estimates, not guarantees.
 """
 
 from __future__ import annotations
@@ -50,12 +52,14 @@ __all__ = [
     "RENDER_NS_PER_PIXEL",
     "STAGE_NS_PER_PIXEL",
     "EFFECT_MS_64",
+    "SPP_NS_PER_PIXEL",
 ]
 
 # Measured with benchmarks/bench_render.py-style loops on the 2-core dev machine (Nov 2026):
 # render ≈ overhead + per-pixel cost (32² … 256² fits); sensor stages per pixel and channel.
 # Note: for small frames scalar_rgb is as fast as llvm_ad_rgb here (kernel launch overhead).
-RENDER_OVERHEAD_MS = {"llvm_ad_rgb": 1.5, "scalar_rgb": 0.2}
+# llvm overhead re-measured by benchmarks/bench_effects.py (baseline 0.73 ms per 64×64 render).
+RENDER_OVERHEAD_MS = {"llvm_ad_rgb": 0.45, "scalar_rgb": 0.2}
 RENDER_NS_PER_PIXEL = {"llvm_ad_rgb": 70.0, "scalar_rgb": 230.0}
 STAGE_NS_PER_PIXEL = {
     "irradiance": 4.0,
@@ -70,19 +74,21 @@ STAGE_NS_PER_PIXEL = {
     "read_noise": 10.0,
     "adc": 6.0,
 }
-# Extra render ms per 64×64 capture *per sample per pixel* for each render-side effect, over the
-# point-lamp/direct baseline, in llvm_ad_rgb; from `python benchmarks/bench_effects.py` (see
-# docs/simulator.md for the table it prints). The spp an effect causes is costed separately as
-# (spp − 1) × the baseline.
+# Render-side effects, llvm_ad_rgb, 64×64, one scene alive: (extra ms at 1 spp over the point-lamp
+# baseline, extra ms per additional sample per pixel), from `python benchmarks/bench_effects.py`
+# (minimum over 60 poses; the table is in docs/simulator.md). Negative slopes measured
+# within noise are stored as 0.
 EFFECT_MS_64 = {
-    "light_spot": 0.3,
-    "light_area": 8.6,
-    "holder": 2.4,
-    "stray_light": 1.2,
-    "path_integrator": 7.4,
-    "measured_material": 13.0,
-    "model_material": 11.0,
+    "light_spot": (0.09, 0.011),
+    "light_area": (0.87, 0.054),
+    "holder": (0.31, 0.0),
+    "stray_light": (0.40, 0.097),
+    "path_integrator": (1.19, 0.400),
+    "measured_material": (1.35, 0.569),
+    "model_material": (0.40, 0.147),
 }
+# The baseline's cost per additional sample per pixel (same benchmark: 0.063 ms / 4096 px).
+SPP_NS_PER_PIXEL = {"llvm_ad_rgb": 15.0, "scalar_rgb": 230.0}
 MAX_DEPTH_CAP = 16
 
 
@@ -237,10 +243,17 @@ def plan_effects(scene: Scene, variant: str | None = None) -> SimPlan:
     cost = {"render": base_ms}
     # Constants are for llvm; scalar pays its per-pixel ratio on top.
     ratio = RENDER_NS_PER_PIXEL[key] / RENDER_NS_PER_PIXEL["llvm_ad_rgb"]
+    # Under the path integrator every vertex samples the lamp and the BSDF again: per-sample
+    # costs of the shading effects repeat up to (max_depth − 1) times per path.
+    depth = _path_depth(scene) if path else 1
+    vertices = max(depth - 1, 1)
     for eff in effects:
-        cost[eff] = EFFECT_MS_64[eff] * npx / 4096 * spp * ratio
+        fixed_ms, per_spp_ms = EFFECT_MS_64[eff]
+        if eff not in ("path_integrator", "holder"):
+            per_spp_ms *= vertices
+        cost[eff] = (fixed_ms + per_spp_ms * (spp - 1)) * npx / 4096 * ratio
     if spp > 1:
-        cost["spp"] = RENDER_NS_PER_PIXEL[key] * npx * (spp - 1) * 1e-6
+        cost["spp"] = SPP_NS_PER_PIXEL[key] * npx * (spp - 1) * 1e-6
     # Stages after "bayer" work on one plane instead of three.
     planes = 3
     for st in stages:
@@ -250,7 +263,7 @@ def plan_effects(scene: Scene, variant: str | None = None) -> SimPlan:
     return SimPlan(
         variant=variant,
         integrator="path" if path else "direct",
-        max_depth=_path_depth(scene) if path else 1,
+        max_depth=depth,
         spp=spp,
         sensor_stages=stages,
         cost_estimate_ms=cost,

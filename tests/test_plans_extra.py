@@ -207,3 +207,35 @@ def test_inplane_plan_runs_on_the_inplane_rig(tmp_path: Path) -> None:
     for c in caps:
         dphi = math.degrees((c.phi_o - c.phi_i) % (2 * math.pi))
         assert c.theta_o < 0.01 or min(abs(dphi - 180.0), dphi, 360.0 - dphi) < 0.5
+
+
+# -- adaptive refinement ------------------------------------------------------------------------
+def test_refinement_covers_the_true_specular_peak() -> None:
+    from acquisition.plans import refine_around_peak
+
+    # Pre-scan: a coarse isotropic grid (20° in θ_o, Δφ every 45°) of a glossy lobe whose peak
+    # is the mirror direction: signal = exp(−θ_h² / (2 σ²)) with θ_h the half-vector angle.
+    sigma = math.radians(4.0)
+    prescan = {}
+    for ti, to, dp in itertools.product((25.0, 55.0), range(0, 90, 20), range(0, 360, 45)):
+        wi, wo = _vec(ti, 0.0), _vec(float(to), float(dp))
+        h = (wi + wo) / np.linalg.norm(wi + wo)
+        prescan[(ti, 0.0, float(to), float(dp))] = math.exp(-(math.acos(h[2]) ** 2) / 2 / sigma**2)
+    step = 2.0
+    plan = refine_around_peak(RIG, prescan, span_deg=20.0, step_deg=step)
+    assert plan.type == "explicit"
+    refined = [tuple(p) for p in plan.poses_deg]
+    assert not set(refined) & set(prescan)  # only new poses
+    assert len(set(refined)) == len(refined)
+    for ti in (25.0, 55.0):
+        mirror = _vec(ti, 180.0)  # specular direction of (θ_i, φ_i = 0)
+        dist = min(
+            math.degrees(math.acos(min(1.0, float(np.dot(_vec(to, po), mirror)))))
+            for t, _, to, po in refined
+            if t == ti
+        )
+        # The fine grid has θ_o spacing `step` and arc spacing ≤ `step` in Δφ: the nearest
+        # fine pose is within half a diagonal, step·√2/2, of any point in the patch.
+        assert dist <= step * math.sqrt(2) / 2 + 1e-9
+    # The refined plan is a valid plan for the rig (every pose reachable).
+    assert len(build_plan(RIG, plan).poses) == len(refined)

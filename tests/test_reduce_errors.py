@@ -129,6 +129,8 @@ def test_every_frame_corrupt_is_an_error(dng_run: Path, tmp_path: Path) -> None:
 def test_a_failed_write_leaves_no_partial_file(dng_run, tmp_path, monkeypatch) -> None:
     """A crash while writing (disk full, kill) leaves neither a partial samples.parquet nor a
     temp file; an earlier samples.parquet is left intact."""
+    import io
+
     import pyarrow.parquet as pq
 
     run, _ = _copy(dng_run, tmp_path)
@@ -137,8 +139,13 @@ def test_a_failed_write_leaves_no_partial_file(dng_run, tmp_path, monkeypatch) -
     real = pq.write_table
 
     def half_then_fail(table, where, *args, **kwargs):
-        real(table, where, *args, **kwargs)
-        Path(where).write_bytes(Path(where).read_bytes()[:100])  # half-written...
+        buf = io.BytesIO()
+        real(table, buf, *args, **kwargs)
+        partial = buf.getvalue()[:100]  # half-written...
+        if hasattr(where, "write"):
+            where.write(partial)
+        else:
+            Path(where).write_bytes(partial)
         raise OSError("No space left on device")  # ...then the disk fills up
 
     monkeypatch.setattr(pq, "write_table", half_then_fail)

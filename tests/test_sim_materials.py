@@ -18,7 +18,14 @@ import pytest
 from acquisition.config import ConfigError
 from fitting import models
 from simulator.render import Renderer
-from simulator.scene import CameraSpec, MeasuredMaterial, ModelMaterial, SampleSpec, Scene, load_scene
+from simulator.scene import (
+    CameraSpec,
+    MeasuredMaterial,
+    ModelMaterial,
+    SampleSpec,
+    Scene,
+    load_scene,
+)
 
 I_W_SR = (2.0, 1.5, 1.0)
 

@@ -1,0 +1,320 @@
+"""Model comparison: WAIC, PSIS-LOO (with Pareto k̂ diagnostics), AIC/BIC, ranked table (issue 7).
+
+Inputs are pointwise log-likelihoods ``ll`` of shape (S, n): S posterior draws × n samples
+(:meth:`fitting.likelihood.Likelihood.pointwise_log_likelihood`). All models compared must be
+fitted to the *same* n samples (same table, channels and censoring) so the pointwise
+differences are meaningful.
+
+* WAIC (Watanabe 2010; Vehtari, Gelman & Gabry 2017, eqs. 3–5, 11–12):
+  lppd_j = ln( (1/S) Σ_s p(y_j|θ_s) ),  p_waic,j = Var_s[ln p(y_j|θ_s)],
+  elpd_waic = Σ_j (lppd_j − p_waic,j),  WAIC = −2 elpd_waic.
+* PSIS-LOO (Vehtari, Gelman & Gabry 2017, "Practical Bayesian model evaluation using
+  leave-one-out cross-validation and WAIC", Stat. Comput. 27:1413, §2.1 and §3):
+  raw importance ratios r_s = 1/p(y_j|θ_s); the M = min(⌈0.2 S⌉, ⌈3√S⌉) largest are replaced
+  by expected order statistics of a generalized Pareto distribution fitted to them (Zhang &
+  Stephens 2009 estimator with the weakly informative prior of Vehtari et al.: k̂ ←
+  (M k̂ + 10·0.5)/(M + 10)), truncated at the largest raw ratio; then
+  elpd_loo,j = ln( Σ_s w_s p(y_j|θ_s) / Σ_s w_s ).  p_loo = lppd − elpd_loo.
+  k̂ > 0.7 means that sample's LOO estimate is unreliable (heavy-tailed ratios).
+* SE of an elpd: √(n Var_j elpd_j); of a difference between models A and B:
+  √(n Var_j (elpd_A,j − elpd_B,j)) (Vehtari et al. 2017, eq. 24). Units: nats (ln-density,
+  f in sr⁻¹).
+* AIC / BIC are copied from the fit JSON goodness (at the MAP, see :mod:`fitting.fit`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.special import logsumexp
+
+__all__ = [
+    "COMPARE_SCHEMA_VERSION",
+    "KHAT_BAD",
+    "gpd_fit",
+    "psis_smooth",
+    "waic",
+    "psis_loo",
+    "posterior_draws",
+    "pointwise_log_likelihood",
+    "ModelScore",
+    "score_fit",
+    "rank",
+    "write_compare",
+    "read_compare",
+]
+
+COMPARE_SCHEMA_VERSION = 1
+#: Pareto k̂ above which a PSIS-LOO term is unreliable (Vehtari et al. 2017/2024).
+KHAT_BAD = 0.7
+
+
+def gpd_fit(x: np.ndarray) -> tuple[float, float]:
+    """Generalized Pareto (shape k, scale σ) fitted to exceedances ``x`` > 0, sorted ascending.
+
+    Zhang & Stephens (2009), "A new and efficient estimation method for the generalized Pareto
+    distribution", Technometrics 51:316 — the profile-posterior mean of b = −k/σ over a grid
+    of m = 30 + ⌊√n⌋ points, k = mean ln(1 − b x) (k > 0: heavy tail), σ = −k/b; then the
+    weakly informative prior of Vehtari et al. (2017, appendix), k ← (n k + 5)/(n + 10).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    n = x.size
+    m = 30 + int(math.sqrt(n))
+    b = 1.0 - np.sqrt(m / (np.arange(1, m + 1, dtype=np.float64) - 0.5))
+    b /= 3.0 * x[int(n / 4 + 0.5) - 1]
+    b += 1.0 / x[-1]
+    k = np.log1p(-b[:, None] * x).mean(axis=1)
+    profile = n * (np.log(-b / k) - k - 1.0)
+    # weights_i = 1 / Σ_j exp(L_j − L_i): normalised exp(L), computed without overflow.
+    with np.errstate(over="ignore"):  # exp → inf gives weight 0, dropped just below
+        w = 1.0 / np.exp(profile[None, :] - profile[:, None]).sum(axis=1)
+    keep = w >= 10 * np.finfo(float).eps
+    w, b = w[keep], b[keep]
+    w /= w.sum()
+    b_post = float(np.sum(b * w))
+    k_post = float(np.log1p(-b_post * x).mean())
+    sigma = -k_post / b_post
+    k_post = (n * k_post + 10 * 0.5) / (n + 10)
+    return k_post, sigma
+
+
+def _gpd_quantile(p: np.ndarray, k: float, sigma: float) -> np.ndarray:
+    """Inverse CDF of the GPD: σ ((1 − p)^(−k) − 1)/k, or −σ ln(1 − p) for k → 0."""
+    if abs(k) < 1e-12:
+        return -sigma * np.log1p(-p)
+    return sigma * np.expm1(-k * np.log1p(-p)) / k
+
+
+def psis_smooth(log_ratios: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pareto-smoothed importance log-weights for log ratios (S, n) → (log w (S, n), k̂ (n,)).
+
+    Each column's log weights are normalised (logsumexp = 0). A column whose tail has ≤ 4
+    draws gets k̂ = inf and is left unsmoothed.
+    """
+    lr = np.asarray(log_ratios, dtype=np.float64)
+    if lr.ndim == 1:
+        lr = lr[:, None]
+    s, n = lr.shape
+    m = int(math.ceil(min(0.2 * s, 3.0 * math.sqrt(s))))
+    out = np.empty_like(lr)
+    khat = np.full(n, np.inf)
+    tiny = math.log(np.finfo(float).tiny)
+    for j in range(n):
+        x = lr[:, j] - np.max(lr[:, j])  # max 0: no overflow in exp
+        order = np.argsort(x)
+        cutoff = max(x[order[-m - 1]], tiny)
+        tail = np.flatnonzero(x > cutoff)
+        if tail.size > 4:
+            t_order = np.argsort(x[tail])
+            exceed = np.exp(x[tail][t_order]) - math.exp(cutoff)
+            k, sigma = gpd_fit(exceed)
+            khat[j] = k
+            if np.isfinite(k):
+                p = (np.arange(tail.size) + 0.5) / tail.size
+                x[tail[t_order]] = np.log(_gpd_quantile(p, k, sigma) + math.exp(cutoff))
+                x[x > 0] = 0.0  # truncate at the largest raw ratio
+        out[:, j] = x - logsumexp(x)
+    return out, khat
+
+
+def _se(pointwise: np.ndarray) -> float:
+    n = pointwise.size
+    return float(math.sqrt(n * np.var(pointwise, ddof=1))) if n > 1 else float("nan")
+
+
+def waic(ll: np.ndarray) -> dict:
+    """WAIC from pointwise ln-likelihoods (S, n): elpd, se, p_waic, waic = −2 elpd, pointwise."""
+    ll = np.asarray(ll, dtype=np.float64)
+    s = ll.shape[0]
+    lppd = logsumexp(ll, axis=0) - math.log(s)
+    with np.errstate(invalid="ignore"):
+        p = np.var(ll, axis=0, ddof=1)
+    elpd_i = lppd - p
+    return {
+        "elpd": float(elpd_i.sum()),
+        "se": _se(elpd_i),
+        "p": float(p.sum()),
+        "waic": float(-2 * elpd_i.sum()),
+        "n_var_gt_0_4": int(np.sum(p > 0.4)),  # Vehtari et al. 2017: WAIC unreliable there
+        "pointwise": elpd_i,
+    }
+
+
+def psis_loo(ll: np.ndarray) -> dict:
+    """PSIS-LOO from pointwise ln-likelihoods (S, n): elpd, se, p_loo, looic, k̂ per sample."""
+    ll = np.asarray(ll, dtype=np.float64)
+    s = ll.shape[0]
+    lw, khat = psis_smooth(-ll)
+    elpd_i = logsumexp(lw + ll, axis=0)
+    lppd = logsumexp(ll, axis=0) - math.log(s)
+    return {
+        "elpd": float(elpd_i.sum()),
+        "se": _se(elpd_i),
+        "p": float((lppd - elpd_i).sum()),
+        "looic": float(-2 * elpd_i.sum()),
+        "khat": khat,
+        "khat_max": float(np.max(khat)) if khat.size else float("nan"),
+        "n_khat_bad": int(np.sum(khat > KHAT_BAD)),
+        "pointwise": elpd_i,
+    }
+
+
+def posterior_draws(result, max_draws: int = 800, seed: int = 0) -> np.ndarray:
+    """Up to ``max_draws`` posterior draws (S, D) in the sampled space from a fresh FitResult.
+
+    MCMC chain if there is one (thinned evenly, so autocorrelation is spread), else the
+    Laplace approximation N(x̂, C_LSQ) clipped to the prior box (what fit_samples reports
+    without MCMC), else the point estimate alone.
+    """
+    ex = result.extras
+    if "mcmc" in ex:
+        flat = ex["mcmc"].flat
+        idx = np.linspace(0, flat.shape[0] - 1, min(max_draws, flat.shape[0])).astype(int)
+        return flat[idx]
+    lsq, space = ex["lsq"], ex["space"]
+    if lsq.cov is None:
+        return np.asarray(lsq.x, dtype=np.float64)[None, :]
+    lo, hi = space.bounds
+    rng = np.random.default_rng(seed)
+    d = rng.multivariate_normal(lsq.x, lsq.cov, size=max_draws, method="eigh")
+    return np.clip(d, lo, hi)
+
+
+def pointwise_log_likelihood(lik, draws: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """(S, n) ln-likelihood per draw and sample, computed ``chunk`` draws at a time."""
+    draws = np.atleast_2d(draws)
+    return np.concatenate(
+        [lik.pointwise_log_likelihood(draws[i : i + chunk]) for i in range(0, len(draws), chunk)]
+    )
+
+
+@dataclass
+class ModelScore:
+    """One row of the comparison table (nats for elpd; AIC/BIC on the −2 ln L scale)."""
+
+    label: str
+    model: str
+    options: dict
+    shared: list[str]
+    k: int
+    n: int
+    elpd_loo: float
+    se_loo: float
+    p_loo: float
+    looic: float
+    khat_max: float
+    n_khat_bad: int
+    elpd_waic: float
+    se_waic: float
+    p_waic: float
+    waic: float
+    aic: float
+    bic: float
+    d_elpd: float = 0.0
+    d_se: float = 0.0
+    rank: int = 0
+    warnings: list[str] = field(default_factory=list)
+    pointwise: np.ndarray | None = field(default=None, repr=False)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d.pop("pointwise")
+        return {
+            k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()
+        }
+
+
+def score_fit(
+    result, label: str | None = None, *, max_draws: int = 800, seed: int = 0
+) -> ModelScore:
+    """WAIC, PSIS-LOO, AIC, BIC of a fresh :class:`fitting.result.FitResult` (with extras)."""
+    lik = result.extras["likelihood"]
+    space = result.extras["space"]
+    ll = pointwise_log_likelihood(lik, posterior_draws(result, max_draws, seed))
+    w = waic(ll)
+    lo = psis_loo(ll)
+    warnings = []
+    if lo["n_khat_bad"]:
+        warnings.append(f"{lo['n_khat_bad']} sample(s) with Pareto k̂ > {KHAT_BAD}")
+    if result.diagnostics.get("stop_reason") == "no_mcmc":
+        warnings.append("Laplace draws (no MCMC)")
+    shared = [s.name for s in space.specs if s.name == s.base and s.base != "discrepancy"]
+    return ModelScore(
+        label=label or result.model,
+        model=result.model,
+        options=dict(result.options),
+        shared=shared,
+        k=int(space.ndim),
+        n=int(ll.shape[1]),
+        elpd_loo=lo["elpd"],
+        se_loo=lo["se"],
+        p_loo=lo["p"],
+        looic=lo["looic"],
+        khat_max=lo["khat_max"],
+        n_khat_bad=lo["n_khat_bad"],
+        elpd_waic=w["elpd"],
+        se_waic=w["se"],
+        p_waic=w["p"],
+        waic=w["waic"],
+        aic=float(result.goodness.get("aic", float("nan"))),
+        bic=float(result.goodness.get("bic", float("nan"))),
+        warnings=warnings,
+        pointwise=lo["pointwise"],
+    )
+
+
+def rank(scores: Sequence[ModelScore]) -> list[ModelScore]:
+    """Sort by elpd_loo (best first) and fill ΔELPD = elpd − elpd_best ≤ 0 with its SE."""
+    ordered = sorted(
+        scores, key=lambda s: -s.elpd_loo if math.isfinite(s.elpd_loo) else math.inf
+    )
+    if not ordered:
+        return []
+    best = ordered[0]
+    for i, s in enumerate(ordered):
+        s.rank = i + 1
+        s.d_elpd = s.elpd_loo - best.elpd_loo
+        if s is best:
+            s.d_se = 0.0
+        elif (
+            s.pointwise is not None
+            and best.pointwise is not None
+            and s.pointwise.shape == best.pointwise.shape
+        ):
+            s.d_se = _se(s.pointwise - best.pointwise)
+        else:
+            s.d_se = float("nan")
+    return ordered
+
+
+def write_compare(path: str | os.PathLike, scores: Sequence[ModelScore]) -> Path:
+    """compare.json: {"schema_version", "criterion": "elpd_loo", "models": [row, …]} best first."""
+    path = Path(path)
+    doc = {
+        "schema_version": COMPARE_SCHEMA_VERSION,
+        "criterion": "elpd_loo",
+        "models": [s.to_dict() for s in scores],
+    }
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def read_compare(path: str | os.PathLike) -> list[dict]:
+    """Rows of a compare.json (raises ValueError with one line if it is not one)."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+        rows = doc["models"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a compare.json ({type(exc).__name__})") from None
+    if not isinstance(rows, list):
+        raise ValueError(f"{path}: not a compare.json")
+    return rows
