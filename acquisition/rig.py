@@ -16,7 +16,7 @@ from typing import Any
 from acquisition.clock import Clock, get_clock
 from acquisition.config import RigConfig
 from acquisition.kinematics import Kinematics
-from acquisition.protocols import Axis, Camera, LightSource
+from acquisition.protocols import Axis, Camera, DeviceFault, LightSource
 
 __all__ = ["Rig", "CAMERA_BACKENDS", "register_camera_backend", "build_rig", "clear_alerts"]
 
@@ -200,35 +200,50 @@ def build_rig(config: RigConfig, *, reboot_alerted: bool = True) -> Rig:
     if reboot_alerted:
         try:
             for a in config.axes:
-                bus.ping(a.id)  # a servo that does not answer fails here with its id
+                try:
+                    bus.ping(a.id)
+                except DeviceFault as exc:
+                    raise DeviceFault(
+                        f"axis {a.role}: servo {a.id} does not answer: {exc}"
+                    ) from exc
             recovered = clear_alerts(bus, [a.id for a in config.axes])
         except Exception:
             bus.close()
             raise
-    axes: dict[str, DynamixelAxis] = {}
-    for a in config.axes:
-        axes[a.role] = DynamixelAxis(
-            bus,
-            a.id,
-            a.role,
-            gear_ratio=a.gear_ratio,
-            zero_offset_rad=math.radians(a.zero_offset_deg),
-            direction=a.direction,
-            limits_rad=(math.radians(a.min_deg), math.radians(a.max_deg)),
-            profile_velocity=a.profile_velocity,
-            profile_acceleration=a.profile_acceleration,
-        )
-    light = SerialLight(config.light.url, clock=clock)
-    closers.append(getattr(light, "close", lambda: None))
     try:
-        factory = CAMERA_BACKENDS[config.camera.backend]
-    except KeyError:
-        raise ValueError(
-            f"camera.backend {config.camera.backend!r} is not available; known: "
-            f"{', '.join(sorted(CAMERA_BACKENDS)) or 'none'}"
-        ) from None
-    camera = factory(config, clock)
-    closers.append(getattr(camera, "close", lambda: None))
+        axes: dict[str, DynamixelAxis] = {}
+        for a in config.axes:
+            axes[a.role] = DynamixelAxis(
+                bus,
+                a.id,
+                a.role,
+                gear_ratio=a.gear_ratio,
+                zero_offset_rad=math.radians(a.zero_offset_deg),
+                direction=a.direction,
+                limits_rad=(math.radians(a.min_deg), math.radians(a.max_deg)),
+                profile_velocity=a.profile_velocity,
+                profile_acceleration=a.profile_acceleration,
+            )
+        light = SerialLight(config.light.url, clock=clock)
+        closers.append(getattr(light, "close", lambda: None))
+        try:
+            factory = CAMERA_BACKENDS[config.camera.backend]
+        except KeyError:
+            raise ValueError(
+                f"camera.backend {config.camera.backend!r} is not available; known: "
+                f"{', '.join(sorted(CAMERA_BACKENDS)) or 'none'}"
+            ) from None
+        camera = factory(config, clock)
+        closers.append(getattr(camera, "close", lambda: None))
+    except BaseException:
+        # Whatever opened so far is closed again: ports are opened exclusively, and a retry
+        # (or the next resume) must find them free.
+        for close in reversed(closers):
+            try:
+                close()
+            except Exception:
+                pass
+        raise
     ordered = list(axes.values())
     return Rig(
         config=config,

@@ -116,15 +116,15 @@ def main(argv: list[str] | None = None) -> None:
         REPO / "configs" / "rigs" / "sim.toml", REPO / "configs" / "plans" / "isotropic.toml"
     )
     print(f"isotropic.toml: {f['poses']} poses ({f['skipped']} unreachable skipped)")
-    print(f"  raster (plan order)     {f['raster_s']:8.1f} s")
-    print(f"  best raster nesting     {f['best_raster_s']:8.1f} s")
+    print(f"  raster (plan order)      {f['raster_s']:8.1f} s")
+    print(f"  best raster nesting      {f['best_raster_s']:8.1f} s")
     print(
-        f"  ordered (NN+2opt+Or-opt) {f['ordered_s']:8.1f} s   "
+        f"  ordered (NN + 2-opt)     {f['ordered_s']:8.1f} s   "
         f"cut {1 - f['ordered_s'] / f['raster_s']:.1%} vs raster, "
         f"{1 - f['ordered_s'] / f['best_raster_s']:.1%} vs best raster  (target ≥ 30 %)"
     )
-    print(f"  lower bound (any order) {f['lower_bound_s']:8.1f} s")
-    print(f"  estimated lab time      {f['lab_estimate_s']:8.1f} s")
+    print(f"  lower bound (any order)  {f['lower_bound_s']:8.1f} s")
+    print(f"  estimated lab time       {f['lab_estimate_s']:8.1f} s")
     if args.skip_run:
         return
     roots = [("disk (" + tempfile.gettempdir() + ")", None)]

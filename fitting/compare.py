@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -48,6 +48,10 @@ __all__ = [
     "rank",
     "write_compare",
     "read_compare",
+    "Candidate",
+    "candidates",
+    "restrict",
+    "run_comparison",
 ]
 
 COMPARE_SCHEMA_VERSION = 1
@@ -271,9 +275,7 @@ def score_fit(
 
 def rank(scores: Sequence[ModelScore]) -> list[ModelScore]:
     """Sort by elpd_loo (best first) and fill ΔELPD = elpd − elpd_best ≤ 0 with its SE."""
-    ordered = sorted(
-        scores, key=lambda s: -s.elpd_loo if math.isfinite(s.elpd_loo) else math.inf
-    )
+    ordered = sorted(scores, key=lambda s: -s.elpd_loo if math.isfinite(s.elpd_loo) else math.inf)
     if not ordered:
         return []
     best = ordered[0]
@@ -318,3 +320,111 @@ def read_compare(path: str | os.PathLike) -> list[dict]:
     if not isinstance(rows, list):
         raise ValueError(f"{path}: not a compare.json")
     return rows
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One model fit to compare: ``label`` names its files (fit-<label>.json)."""
+
+    label: str
+    model: str
+    options: dict
+    shared: tuple[str, ...]
+
+
+def _shared_for(model, shared: Sequence[str]) -> tuple[str, ...]:
+    """The requested shared names that ``model`` has; Phong's exponent n stands in for m."""
+    names = model.parameter_names
+    out = [s for s in shared if s in names]
+    if "m" in shared and "m" not in names and "n" in names:
+        out.append("n")
+    return tuple(out)
+
+
+def candidates(
+    model: str,
+    options: Mapping | None = None,
+    shared: Sequence[str] = ("m",),
+    *,
+    compare_shared: bool = False,
+) -> list[Candidate]:
+    """The fits a ``gonio fit --model`` call asks for. ``model="all"``: every registered model
+    (``options`` go to the models that take them, i.e. torrance-sparrow). With
+    ``compare_shared`` each model whose shared set is non-empty is fitted again with every
+    parameter per channel (label suffix ``-per-channel``)."""
+    from fitting import models as registry
+
+    names = registry.names() if model == "all" else [model]
+    out = []
+    for name in names:
+        opts = dict(options or {})
+        if model == "all" and name != "torrance-sparrow":
+            opts = {}
+        m = registry.get(name, **opts)
+        sh = _shared_for(m, shared)
+        out.append(Candidate(name, name, opts, sh))
+        if compare_shared and sh:
+            out.append(Candidate(f"{name}-per-channel", name, opts, ()))
+    return out
+
+
+def restrict(model, fix: Mapping[str, float] | None, priors) -> tuple[dict, object]:
+    """``fix`` and a PriorsConfig reduced to the names ``model`` knows (for ``--model all``,
+    where one --fix or priors file serves several models)."""
+    names = set(model.parameter_names) | {"discrepancy"}
+
+    def known(key: str) -> bool:
+        base, _, _ = key.rpartition("_")
+        return key in names or base in names
+
+    fix = {k: v for k, v in (fix or {}).items() if known(k)}
+    if priors is not None:
+        priors = priors.model_copy(
+            update={"parameters": {k: v for k, v in priors.parameters.items() if known(k)}}
+        )
+    return fix, priors
+
+
+def run_comparison(
+    table,
+    cands: Sequence[Candidate],
+    *,
+    out_dir: str | os.PathLike,
+    fix: Mapping[str, float] | None = None,
+    priors=None,
+    max_draws: int = 800,
+    on_fit=None,
+    **fit_kwargs,
+) -> tuple[list[ModelScore], dict]:
+    """Fit every candidate (fit-<label>.json/.h5 in ``out_dir``), score and rank them, write
+    ``out_dir/compare.json``. ``on_fit(candidate, result)`` is called after each fit.
+    Returns (ranked scores, {label: FitResult})."""
+    from fitting import models as registry
+    from fitting.fit import fit_samples
+    from fitting.priors import PriorsConfig, load_priors
+
+    out_dir = Path(out_dir)
+    if priors is not None and not isinstance(priors, PriorsConfig):
+        priors = load_priors(priors)
+    results, scores = {}, []
+    for c in cands:
+        model = registry.get(c.model, **c.options)
+        fx, pr = restrict(model, fix, priors)
+        sub = out_dir if c.label == c.model else out_dir / c.label
+        res = fit_samples(
+            table,
+            c.model,
+            c.options,
+            shared=c.shared,
+            fix=fx,
+            priors=pr,
+            out_dir=sub,
+            **fit_kwargs,
+        )
+        results[c.label] = res
+        scores.append(score_fit(res, c.label, max_draws=max_draws, seed=fit_kwargs.get("seed", 0)))
+        if on_fit is not None:
+            on_fit(c, res)
+    ranked = rank(scores)
+    write_compare(out_dir / "compare.json", ranked)
+    return ranked, results

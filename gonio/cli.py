@@ -121,12 +121,32 @@ def fit(
         typer.Argument(help="samples.parquet (any table with the DESIGN §4 required columns)."),
     ],
     model: Annotated[
-        str, typer.Option("--model", help="Model name (see `gonio models`).")
+        str,
+        typer.Option(
+            "--model", help='Model name (see `gonio models`), or "all" to fit and rank every one.'
+        ),
     ] = "torrance-sparrow",
     option: Annotated[list[str], typer.Option("--option", help="Model option KEY=VALUE.")] = [],  # noqa: B006
     fix: Annotated[list[str], typer.Option("--fix", help="Hold NAME=VALUE fixed.")] = [],  # noqa: B006
     shared: Annotated[str, typer.Option(help="Comma list of parameters shared by channels.")] = "m",
+    compare_shared: Annotated[
+        bool,
+        typer.Option(
+            "--compare-shared",
+            help="Also fit each model with every parameter per channel; rank both.",
+        ),
+    ] = False,
     channels: Annotated[str | None, typer.Option(help="Comma list, e.g. R,G,B.")] = None,
+    priors: Annotated[
+        Path | None, typer.Option("--priors", help="Priors TOML (bounds, energy conservation).")
+    ] = None,
+    likelihood: Annotated[
+        str, typer.Option("--likelihood", help="gaussian | student-t (robust to outliers).")
+    ] = "gaussian",
+    censor: Annotated[
+        bool,
+        typer.Option("--censor", help="Treat saturated/dark samples as censored, not excluded."),
+    ] = False,
     no_mcmc: Annotated[bool, typer.Option("--no-mcmc", help="Least squares only.")] = False,
     walkers: Annotated[int, typer.Option(help="emcee walkers.")] = 32,
     steps: Annotated[int, typer.Option(help="Maximum MCMC steps.")] = 3000,
@@ -136,40 +156,116 @@ def fit(
         Path | None, typer.Option("--out", help="Output directory (default: beside SAMPLES).")
     ] = None,
 ) -> None:
-    """Fit a model to SAMPLES: writes fit-NAME.json and fit-NAME.h5."""
+    """Fit a model to SAMPLES: writes fit-NAME.json, fit-NAME.h5 and material-NAME.xml
+    (Mitsuba 3); with --model all or --compare-shared also compare.json (ranked by PSIS-LOO)."""
     from fitting import models as model_registry
-    from fitting.fit import fit_samples
+    from fitting.compare import candidates, run_comparison
+    from fitting.export import write_material_xml
+    from fitting.likelihood import LIKELIHOOD_KINDS
+    from fitting.priors import PriorsError, load_priors
     from fitting.samples import read_samples
     from gonio.errors import UserError
 
     table = read_samples(samples)
-    if model not in model_registry.names():
-        raise UserError(f"unknown model {model!r}; known: {', '.join(model_registry.names())}")
+    if model != "all" and model not in model_registry.names():
+        raise UserError(f"unknown model {model!r}; known: {', '.join(model_registry.names())}, all")
+    if likelihood not in LIKELIHOOD_KINDS:
+        raise UserError(f"--likelihood {likelihood!r}: use one of {', '.join(LIKELIHOOD_KINDS)}")
     if walkers < 2 or steps < 1:
         raise UserError("--walkers must be ≥ 2 and --steps ≥ 1")
-    fixed = {k: float(v) for k, v in _kv(fix, "--fix").items()}
+    try:
+        fixed = {k: float(v) for k, v in _kv(fix, "--fix").items()}
+    except ValueError as exc:
+        raise UserError(f"--fix: {exc}") from None
     chans = [c.strip() for c in channels.split(",")] if channels else None
-    result = fit_samples(
-        table,
-        model,
-        options=_kv(option, "--option"),
+    dest = out_dir or samples.parent
+    shared_names = tuple(s.strip() for s in shared.split(",") if s.strip())
+    try:
+        prior_cfg = load_priors(priors) if priors is not None else None
+        cands = candidates(
+            model, _kv(option, "--option"), shared_names, compare_shared=compare_shared
+        )
+    except (PriorsError, TypeError, ValueError) as exc:
+        raise UserError(str(exc).splitlines()[0]) from None
+
+    def show(c, result) -> None:
+        xml = write_material_xml(result, Path(dest) / f"material-{c.label}.xml")
+        t = Table(title=f"{c.label} fit ({xml.name})")
+        for col in ("parameter", "MAP", "median", "p16", "p84"):
+            t.add_column(col, justify="right")
+        for name, p in result.to_dict()["parameters"].items():
+            t.add_row(name, *(f"{p[k]:.5g}" for k in ("map", "median", "p16", "p84")))
+        out.print(t)
+
+    kwargs = dict(
         channels=chans,
-        shared=tuple(s.strip() for s in shared.split(",") if s.strip()),
-        fix=fixed,
         mcmc=not no_mcmc,
         walkers=walkers,
         steps=steps,
         time_budget_s=time_budget,
         seed=seed,
-        out_dir=out_dir or samples.parent,
+        likelihood=likelihood,
+        censor=censor,
         progress=True,
     )
-    t = Table(title=f"{model} fit")
-    for col in ("parameter", "MAP", "median", "p16", "p84"):
-        t.add_column(col, justify="right")
-    for name, p in result.to_dict()["parameters"].items():
-        t.add_row(name, *(f"{p[k]:.5g}" for k in ("map", "median", "p16", "p84")))
-    out.print(t)
+    try:
+        if len(cands) == 1 and not compare_shared:
+            from fitting.fit import fit_samples
+
+            c = cands[0]
+            result = fit_samples(
+                table,
+                c.model,
+                options=c.options,
+                shared=c.shared,
+                fix=fixed,
+                priors=prior_cfg,
+                out_dir=dest,
+                **kwargs,
+            )
+            show(c, result)
+            return
+        ranked, _ = run_comparison(
+            table, cands, out_dir=dest, fix=fixed, priors=prior_cfg, on_fit=show, **kwargs
+        )
+    except PriorsError as exc:
+        raise UserError(str(exc).splitlines()[0]) from None
+
+    def num(x: float) -> str:
+        return f"{x:.0f}" if abs(x) >= 100 else f"{x:.1f}"
+
+    t = Table(title=f"Model comparison, {ranked[0].n} samples (best first; elpd in nats)")
+    for col in (
+        "model",
+        "shared",
+        "k",
+        "elpd_loo ± SE",
+        "p_loo",
+        "WAIC",
+        "ΔELPD ± SE",
+        "max k̂",
+        "AIC",
+        "BIC",
+    ):
+        t.add_column(col, justify="right", no_wrap=True)
+    for s in ranked:
+        t.add_row(
+            s.label,
+            ",".join(s.shared) or "–",
+            str(s.k),
+            f"{num(s.elpd_loo)} ± {num(s.se_loo)}",
+            num(s.p_loo),
+            num(s.waic),
+            f"{num(s.d_elpd)} ± {num(s.d_se)}",
+            f"{s.khat_max:.2f}",
+            num(s.aic),
+            num(s.bic),
+        )
+    out.print(t, width=max(out.width, 140))  # wrapped numbers are unreadable
+    for s in ranked:
+        for w in s.warnings:
+            out.print(f"note: {s.label}: {w}")
+    out.print(str(Path(dest) / "compare.json"))
 
 
 @app.command(name="calibrate-camera")

@@ -1,6 +1,12 @@
 """`report.html`: one self-contained page (plots embedded as PNG data URIs) per run.
 
-Every user-supplied string (run, material and model names, notes) goes through html.escape.
+Sections: run summary; measured vs fitted in-plane slices (±1σ); per fit: parameter table,
+MCMC diagnostics, goodness of fit, residual map over (θ_h, θ_d), trace plots, posterior
+marginals, a corner plot, the preview render (gonio.preview); the model-comparison table
+(compare.json, written by ``gonio fit --model all``); lab and compute time per stage.
+
+Every user-supplied string (run, plan, rig and model names, labels, notes) goes through
+html.escape.
 """
 
 from __future__ import annotations
@@ -10,6 +16,7 @@ import html
 import io
 import json
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -18,10 +25,12 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from acquisition.store import RunStore, atomic_write_bytes  # noqa: E402
 from fitting import models  # noqa: E402
 from fitting.directions import spherical_to_vector  # noqa: E402
+from fitting.rusinkiewicz import to_half_diff  # noqa: E402
 from fitting.samples import read_samples  # noqa: E402
 
 __all__ = ["write_report"]
@@ -32,7 +41,7 @@ h1{font-size:1.6em}
 h2{font-size:1.25em;border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:2em}
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:.25em .6em;
 text-align:right}th{background:#f4f4f4}td:first-child,th:first-child{text-align:left}
-.ok{color:#176e1b}.bad{color:#b00020}.note{color:#555;font-size:.9em}img{max-width:100%}
+.preview{width:256px;image-rendering:auto}.ok{color:#176e1b}.bad{color:#b00020}.note{color:#555;font-size:.9em}img{max-width:100%}
 """
 
 
@@ -73,6 +82,14 @@ def _fit_params(fit: dict, channel: str) -> dict[str, float]:
     return out
 
 
+def _model_of(fit: dict):
+    """The fit's model, or None if this gonio does not know it (a foreign fit JSON)."""
+    try:
+        return models.get(fit["model"], **fit.get("options", {}))
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
 def _slice_plot(samples, fits: list[dict]) -> str:
     """In-plane slices: f vs signed θ_o (positive = specular side) for each θ_i, per channel."""
     good = samples.good()
@@ -102,9 +119,9 @@ def _slice_plot(samples, fits: list[dict]) -> str:
                 alpha=0.6,
                 label=f"θi≈{lev:.0f}°",
             )
-            if fits:
+            model = _model_of(fits[0]) if fits else None
+            if model is not None:
                 fit = fits[0]
-                model = models.get(fit["model"], **fit.get("options", {}))
                 ti = np.radians(np.mean(np.degrees(good.theta_i[m])))
                 to = np.radians(np.linspace(-85, 85, 341))
                 wi = np.repeat(spherical_to_vector(ti, 0.0)[None, :], to.size, axis=0)
@@ -122,36 +139,245 @@ def _slice_plot(samples, fits: list[dict]) -> str:
     return _png(fig)
 
 
-def _load_posterior(path: Path, fit: dict) -> tuple[list[str], np.ndarray]:
-    """Second half of the stored emcee chain, in natural units.
+def _load_chain(path: Path, fit: dict) -> tuple[list[str], np.ndarray, int]:
+    """The whole stored emcee chain (N, W, D) in natural units, and its burn-in length.
 
     The chain is stored in the sampling space (log for scale parameters); columns follow the
     parameter order of the fit JSON. Each column's transform (identity or exp) is the one whose
-    median reproduces the JSON median — both come from the same chain.
+    median over the second half reproduces the JSON median — both come from the same chain.
+    Burn-in shown = the first half (what the report's marginals leave out).
     """
     import h5py
 
     names = list(fit["parameters"])
     with h5py.File(path, "r") as fh:
-        chain = np.asarray(fh["mcmc"]["chain"])
         it = int(fh["mcmc"].attrs["iteration"])
-    chain = chain[it // 2 : it].reshape(-1, chain.shape[-1])
-    if chain.shape[1] != len(names) or chain.shape[0] == 0:
+        chain = np.asarray(fh["mcmc"]["chain"][:it])
+    if chain.ndim != 3 or chain.shape[2] != len(names) or it < 2:
         raise ValueError("chain does not match the fit")
+    tail = chain[it // 2 :].reshape(-1, chain.shape[-1])
     out = np.empty_like(chain)
     for j, name in enumerate(names):
         med = fit["parameters"][name]["median"]
-        lin, ex = chain[:, j], np.exp(np.clip(chain[:, j], -700, 700))
-        err_lin = abs(np.median(lin) - med)
-        err_exp = abs(np.median(ex) - med)
-        out[:, j] = ex if err_exp < err_lin else lin
-    return names, out
+        err_lin = abs(np.median(tail[:, j]) - med)
+        err_exp = abs(np.median(np.exp(np.clip(tail[:, j], -700, 700))) - med)
+        out[..., j] = (
+            np.exp(np.clip(chain[..., j], -700, 700)) if err_exp < err_lin else chain[..., j]
+        )
+    return names, out, it // 2
 
 
-def _posterior_plot(run_dir: Path, fit: dict, truth: dict[str, float]) -> str | None:
+def _load_posterior(path: Path, fit: dict) -> tuple[list[str], np.ndarray]:
+    """Second half of the stored chain, flattened to draws (S, D), natural units."""
+    names, chain, burn = _load_chain(path, fit)
+    return names, chain[burn:].reshape(-1, chain.shape[-1])
+
+
+def _chain_path(run_dir: Path, fit: dict, label: str) -> Path:
+    return run_dir / f"fit-{label}.h5"
+
+
+def _trace_plot(names: list[str], chain: np.ndarray, burn: int, fit: dict) -> str:
+    """Traces of up to 4 parameters (shared first), every walker as a thin line."""
+    shared = [n for n in names if "_" not in n or n == "discrepancy"]
+    pick = (shared + [n for n in names if n not in shared])[:4]
+    fig, axes = plt.subplots(len(pick), 1, figsize=(9, 1.7 * len(pick)), sharex=True)
+    axes = np.atleast_1d(axes)
+    steps = np.arange(chain.shape[0])
+    for ax, name in zip(axes, pick, strict=True):
+        j = names.index(name)
+        ax.plot(steps, chain[:, :, j], color="#4477aa", lw=0.3, alpha=0.35)
+        ax.axvline(burn, color="#cc3311", lw=1, ls="--")
+        ax.set_ylabel(f"{name}\n[{fit['parameters'][name].get('unit', '')}]", fontsize=8)
+        ax.tick_params(labelsize=8)
+        ax.yaxis.set_major_locator(MaxNLocator(4))
+        ax.ticklabel_format(axis="y", useOffset=False)
+    axes[0].set_title(
+        f"MCMC traces, {chain.shape[1]} walkers (red dashed: end of the discarded first half)",
+        fontsize=9,
+    )
+    axes[-1].set_xlabel("step")
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _corner_plot(names: list[str], draws: np.ndarray, fit: dict, truth: dict) -> str:
+    """Pairwise posterior plot: the shared parameters, then channel-1 ones (≤ 5 in all)."""
+    shared = [n for n in names if "_" not in n or n == "discrepancy"]
+    first = fit["channels"][0] if fit.get("channels") else ""
+    pick = (shared + [n for n in names if n.endswith(f"_{first}") and n not in shared])[:5]
+    k = len(pick)
+    rng = np.random.default_rng(0)
+    sub = draws[rng.choice(draws.shape[0], min(draws.shape[0], 3000), replace=False)]
+    fig, axes = plt.subplots(k, k, figsize=(1.9 * k + 0.6, 1.9 * k + 0.6), squeeze=False)
+    for r in range(k):
+        for c in range(k):
+            ax = axes[r][c]
+            if c > r:
+                ax.axis("off")
+                continue
+            x = sub[:, names.index(pick[c])]
+            if r == c:
+                ax.hist(x, bins=35, color="#4477aa", histtype="stepfilled", alpha=0.8)
+                if pick[c] in truth:
+                    ax.axvline(truth[pick[c]], color="#cc3311", lw=1.2)
+            else:
+                y = sub[:, names.index(pick[r])]
+                ax.plot(x, y, ".", ms=1, color="#4477aa", alpha=0.25, rasterized=True)
+                if pick[c] in truth and pick[r] in truth:
+                    ax.plot(truth[pick[c]], truth[pick[r]], "+", color="#cc3311", ms=10, mew=1.5)
+            ax.tick_params(labelsize=6)
+            ax.xaxis.set_major_locator(MaxNLocator(3))
+            ax.yaxis.set_major_locator(MaxNLocator(3))
+            ax.ticklabel_format(useOffset=False, style="sci", scilimits=(-3, 4))
+            if r == k - 1:
+                plt.setp(ax.get_xticklabels(), rotation=35, ha="right")
+            if r == c:
+                ax.set_yticks([])  # a histogram's count axis says nothing here
+            ax.xaxis.get_offset_text().set_fontsize(6)
+            ax.yaxis.get_offset_text().set_fontsize(6)
+            if r == k - 1:
+                ax.set_xlabel(pick[c], fontsize=8)
+            else:
+                ax.set_xticklabels([])
+            if c == 0 and r > 0:
+                ax.set_ylabel(pick[r], fontsize=8)
+            elif c > 0:
+                ax.set_yticklabels([])
+    fig.suptitle("Posterior pairs (draws after burn-in; red: simulated truth)", fontsize=9)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _residual_map(samples, fit: dict) -> str | None:
+    """Mean normalised residual (f − f̂)/σ per (θ_h, θ_d) bin, one panel per channel, at MAP."""
+    model = _model_of(fit)
+    if model is None:
+        return None
+    good = samples.good()
+    chans = [c for c in fit.get("channels", good.channels) if c in good.channels]
+    if not chans or len(good) == 0:
+        return None
+    th, td, _ = to_half_diff(good.wi, good.wo)
+    th_deg, td_deg = np.degrees(th), np.degrees(td)
+    edges_h = np.linspace(0, max(5.0, np.ceil(th_deg.max() / 5) * 5), 25)
+    edges_d = np.linspace(0, max(5.0, np.ceil(td_deg.max() / 5) * 5), 25)
+    fig, axes = plt.subplots(1, len(chans), figsize=(4.0 * len(chans) + 1, 3.6), squeeze=False)
+    lim = 3.0
+    maps = []
+    for ch in chans:
+        m = good.channel == ch
+        params = {k: np.asarray(v, float) for k, v in _fit_params(fit, ch).items()}
+        with np.errstate(all="ignore"):
+            fhat = model.evaluate(params, good.wi[m], good.wo[m])
+            z = (good.f[m] - fhat) / good.sigma[m]
+        ok = np.isfinite(z)
+        total, _, _ = np.histogram2d(
+            th_deg[m][ok], td_deg[m][ok], [edges_h, edges_d], weights=z[ok]
+        )
+        count, _, _ = np.histogram2d(th_deg[m][ok], td_deg[m][ok], [edges_h, edges_d])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(count > 0, total / count, np.nan)
+        maps.append(mean)
+        if np.isfinite(mean).any():
+            lim = max(lim, float(np.nanpercentile(np.abs(mean), 98)))
+    lim = min(lim, 50.0)
+    for ax, ch, mean in zip(axes[0], chans, maps, strict=True):
+        im = ax.pcolormesh(
+            edges_h, edges_d, np.ma.masked_invalid(mean).T, cmap="RdBu_r", vmin=-lim, vmax=lim
+        )
+        ax.set_xlabel("θh [deg]")
+        ax.set_ylabel("θd [deg]")
+        ax.set_title(f"channel {ch}", fontsize=10)
+        ax.set_facecolor("#eeeeee")
+    fig.colorbar(im, ax=axes[0].tolist(), label="mean (f − f̂)/σ per bin", shrink=0.9)
+    fig.suptitle(
+        "Normalised residuals at the MAP (red: measured above the model; grey: no samples)",
+        fontsize=10,
+    )
+    return _png(fig)
+
+
+def _preview(fit: dict) -> tuple[str | None, str]:
+    """(data URI of the preview render, or None, and a note on the material used)."""
+    try:
+        from fitting.export import material_dict
+        from gonio.preview import preview_png
+
+        mat = material_dict(fit)
+        png = preview_png(fit, size_px=128, spp=64)
+    except Exception as exc:  # the report must not fail because a preview could not render
+        return None, f"preview not rendered: {type(exc).__name__}: {str(exc)[:120]}"
+    uri = "data:image/png;base64," + base64.b64encode(png).decode()
+    return uri, f"Mitsuba material: {mat['type']} (posterior medians; see material-*.xml)"
+
+
+def _compare_section(run_dir: Path) -> list[str]:
+    path = run_dir / "compare.json"
+    if not path.exists():
+        return []
+    from fitting.compare import read_compare
+
+    try:
+        rows = read_compare(path)
+    except ValueError as exc:
+        return ["<h2>Model comparison</h2>", f"<p class='bad'>{html.escape(str(exc))}</p>"]
+    body = []
+    for r in rows:
+        if not isinstance(r, dict):
+            continue
+        body.append(
+            [
+                r.get("rank"),
+                r.get("label"),
+                ", ".join(map(str, r.get("shared") or [])) or "–",
+                r.get("k"),
+                r.get("elpd_loo"),
+                r.get("se_loo"),
+                r.get("p_loo"),
+                r.get("waic"),
+                r.get("d_elpd"),
+                r.get("d_se"),
+                r.get("khat_max"),
+                r.get("aic"),
+                r.get("bic"),
+                "; ".join(map(str, r.get("warnings") or [])),
+            ]
+        )
+    return [
+        "<h2>Model comparison</h2>",
+        "<p class='note'>Ranked by PSIS-LOO expected log predictive density (elpd, nats; "
+        "higher is better). ΔELPD is relative to the best model, with the SE of the pointwise "
+        "difference; |ΔELPD| below ~2 SE is no clear preference. k̂ > 0.7: that sample's LOO "
+        "estimate is unreliable. AIC/BIC at the MAP (lower is better).</p>",
+        _table(
+            [
+                "rank",
+                "model",
+                "shared",
+                "k",
+                "elpd_loo",
+                "SE",
+                "p_loo",
+                "WAIC",
+                "ΔELPD",
+                "SE(Δ)",
+                "max k̂",
+                "AIC",
+                "BIC",
+                "notes",
+            ],
+            body,
+        ),
+    ]
+
+
+def _posterior_plot(
+    run_dir: Path, fit: dict, truth: dict[str, float], label: str | None = None
+) -> str | None:
     """Marginal histograms of the stored chain (fit-<model>.h5), natural units."""
     try:
-        names, draws = _load_posterior(run_dir / f"fit-{fit['model']}.h5", fit)
+        names, draws = _load_posterior(_chain_path(run_dir, fit, label or fit["model"]), fit)
     except (OSError, KeyError, ValueError):
         return None
     k = len(names)
@@ -180,13 +406,16 @@ def write_report(run_dir: Path | str, compute_times_s: dict[str, float] | None =
     cfg = store.run_config()
     samples_path = run_dir / "samples.parquet"
     samples = read_samples(samples_path)
-    fits = [json.loads(p.read_text()) for p in sorted(run_dir.glob("fit-*.json"))]
+    fit_paths = sorted(run_dir.glob("fit-*.json"))
+    fits = [json.loads(p.read_text()) for p in fit_paths]
+    labels = [p.stem[len("fit-") :] for p in fit_paths]
     truth: dict[str, float] = {}
     if "scene" in cfg:
         from simulator.scene import Scene
         from simulator.truth import reference_parameters
 
         truth = reference_parameters(Scene.model_validate(cfg["scene"]))
+    preview_s: dict[str, float] = {}
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'>",
         f"<title>gonio report — {html.escape(run_dir.name)}</title>",
@@ -197,14 +426,24 @@ def write_report(run_dir: Path | str, compute_times_s: dict[str, float] | None =
         f"{store.count('done')} captures; {len(samples)} samples "
         f"({'absolute' if not samples.relative else 'RELATIVE — no absolute calibration'}).</p>",
     ]
+    names = [
+        ("rig", cfg.get("rig", {}).get("name")),
+        ("plan", cfg.get("plan", {}).get("name")),
+        ("notes", cfg.get("notes") or cfg.get("plan", {}).get("notes")),
+    ]
+    parts.append(
+        "<p class='note'>"
+        + "; ".join(f"{k}: {html.escape(str(v))}" for k, v in names if v)
+        + "</p>"
+    )
     if "scene" in cfg:
         mat = json.dumps(cfg["scene"].get("material", {}))
         parts.append(f"<p class='note'>Simulated material: <code>{html.escape(mat)}</code></p>")
     parts.append("<h2>Measured vs fitted, plane of incidence</h2>")
     parts.append(f"<img src='{_slice_plot(samples, fits)}'>")
-    for fit in fits:
+    for label, fit in zip(labels, fits, strict=True):
         parts.append(
-            f"<h2>Fit: {html.escape(fit['model'])} "
+            f"<h2>Fit: {html.escape(str(fit['model']))} "
             f"{html.escape(json.dumps(fit.get('options', {})))}</h2>"
         )
         rows = []
@@ -257,19 +496,53 @@ def write_report(run_dir: Path | str, compute_times_s: dict[str, float] | None =
         if good:
             parts.append("<h3>Goodness of fit</h3>")
             parts.append(_table(list(good), [list(good.values())]))
-        post = _posterior_plot(run_dir, fit, truth)
+        resid = _residual_map(samples, fit)
+        if resid:
+            parts.append("<h3>Residual map over (θh, θd)</h3>")
+            parts.append(f"<img src='{resid}'>")
+        try:
+            names_, chain, burn = _load_chain(_chain_path(run_dir, fit, label), fit)
+        except (OSError, KeyError, ValueError):
+            chain = None
+        if chain is not None:
+            parts.append("<h3>Trace plots</h3>")
+            parts.append(f"<img src='{_trace_plot(names_, chain, burn, fit)}'>")
+        post = _posterior_plot(run_dir, fit, truth, label)
         if post:
             parts.append(
                 "<h3>Posterior marginals (black: median, 68% and 95% intervals; "
                 "red: the simulated truth)</h3>"
             )
             parts.append(f"<img src='{post}'>")
+        if chain is not None:
+            draws = chain[burn:].reshape(-1, chain.shape[-1])
+            parts.append("<h3>Corner plot</h3>")
+            parts.append(f"<img src='{_corner_plot(names_, draws, fit, truth)}'>")
+        t_prev = time.perf_counter()
+        uri, note = _preview(fit)
+        preview_s[label] = time.perf_counter() - t_prev
+        parts.append("<h3>Preview render</h3>")
+        if uri:
+            parts.append(
+                f"<p><img class='preview' src='{uri}' alt='preview sphere'><br>"
+                f"<span class='note'>Unit sphere, point light up-left of the camera, "
+                f"{html.escape(note)}</span></p>"
+            )
+        else:
+            parts.append(f"<p class='bad'>{html.escape(note)}</p>")
+    parts += _compare_section(run_dir)
     parts.append("<h2>Time</h2>")
+    parts.append(
+        "<p class='note'>Lab time: what the rig clock accounts for (moves, settling, "
+        "exposures); compute time: wall-clock seconds of each processing stage.</p>"
+    )
     lab = store.meta("lab_time_s")
     trows = [["lab time (rig clock)", float(lab) if lab else None]]
     trows += [[f"compute: {k}", v] for k, v in (compute_times_s or {}).items()]
-    for fit in fits:
-        trows.append([f"compute: fit {fit['model']} (wall)", fit.get("wall_time_s")])
+    for label, fit in zip(labels, fits, strict=True):
+        trows.append([f"compute: fit {label} (wall)", fit.get("wall_time_s")])
+    for label, sec in preview_s.items():
+        trows.append([f"compute: preview render {label}", sec])
     parts.append(_table(["stage", "seconds"], trows))
     parts.append("</body></html>")
     out = run_dir / "report.html"

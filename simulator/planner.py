@@ -58,7 +58,7 @@ __all__ = [
 # Measured with benchmarks/bench_render.py-style loops on the 2-core dev machine (Nov 2026):
 # render ≈ overhead + per-pixel cost (32² … 256² fits); sensor stages per pixel and channel.
 # Note: for small frames scalar_rgb is as fast as llvm_ad_rgb here (kernel launch overhead).
-# llvm overhead re-measured by benchmarks/bench_effects.py (baseline 0.73 ms per 64×64 render).
+# llvm overhead re-measured by benchmarks/bench_effects.py (baseline 0.72 ms per 64×64 render).
 RENDER_OVERHEAD_MS = {"llvm_ad_rgb": 0.45, "scalar_rgb": 0.2}
 RENDER_NS_PER_PIXEL = {"llvm_ad_rgb": 70.0, "scalar_rgb": 230.0}
 STAGE_NS_PER_PIXEL = {
@@ -79,16 +79,16 @@ STAGE_NS_PER_PIXEL = {
 # (minimum over 60 poses; the table is in docs/simulator.md). Negative slopes measured
 # within noise are stored as 0.
 EFFECT_MS_64 = {
-    "light_spot": (0.09, 0.011),
-    "light_area": (0.87, 0.054),
-    "holder": (0.31, 0.0),
-    "stray_light": (0.40, 0.097),
-    "path_integrator": (1.19, 0.400),
-    "measured_material": (1.35, 0.569),
-    "model_material": (0.40, 0.147),
+    "light_spot": (0.20, 0.006),
+    "light_area": (0.68, 0.179),
+    "holder": (0.35, 0.0),
+    "stray_light": (0.54, 0.0),
+    "path_integrator": (0.94, 0.0),
+    "measured_material": (0.57, 0.039),
+    "model_material": (0.41, 0.0),
 }
-# The baseline's cost per additional sample per pixel (same benchmark: 0.063 ms / 4096 px).
-SPP_NS_PER_PIXEL = {"llvm_ad_rgb": 15.0, "scalar_rgb": 230.0}
+# The baseline's cost per additional sample per pixel (same benchmark: 0.138 ms / 4096 px).
+SPP_NS_PER_PIXEL = {"llvm_ad_rgb": 34.0, "scalar_rgb": 230.0}
 MAX_DEPTH_CAP = 16
 
 
@@ -243,14 +243,11 @@ def plan_effects(scene: Scene, variant: str | None = None) -> SimPlan:
     cost = {"render": base_ms}
     # Constants are for llvm; scalar pays its per-pixel ratio on top.
     ratio = RENDER_NS_PER_PIXEL[key] / RENDER_NS_PER_PIXEL["llvm_ad_rgb"]
-    # Under the path integrator every vertex samples the lamp and the BSDF again: per-sample
-    # costs of the shading effects repeat up to (max_depth − 1) times per path.
+    # Additive model: interactions (e.g. an area lamp sampled at every path vertex) are not
+    # modelled; docs/simulator.md compares the estimate with whole-scene measurements.
     depth = _path_depth(scene) if path else 1
-    vertices = max(depth - 1, 1)
     for eff in effects:
         fixed_ms, per_spp_ms = EFFECT_MS_64[eff]
-        if eff not in ("path_integrator", "holder"):
-            per_spp_ms *= vertices
         cost[eff] = (fixed_ms + per_spp_ms * (spp - 1)) * npx / 4096 * ratio
     if spp > 1:
         cost["spp"] = SPP_NS_PER_PIXEL[key] * npx * (spp - 1) * 1e-6

@@ -31,6 +31,7 @@ has columns (left, up, forward); the OpenCV frame is (−left, −up, forward): 
 from __future__ import annotations
 
 from collections import Counter
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -46,6 +47,9 @@ __all__ = [
     "world_to_camera_cv",
     "material_dict",
     "holder_walls",
+    "BoardTarget",
+    "board_renderer",
+    "reference_target_scene",
 ]
 
 
@@ -147,7 +151,16 @@ class Renderer:
     effects were in the rendered scene.
     """
 
-    def __init__(self, scene: Scene, spp: int | None = None, variant: str | None = None, plan=None):
+    def __init__(
+        self,
+        scene: Scene,
+        spp: int | None = None,
+        variant: str | None = None,
+        plan=None,
+        *,
+        sample_bsdf: dict | None = None,
+        sample_extent_m: tuple[float, float] | None = None,
+    ):
         import mitsuba as mi
 
         if variant is None:
@@ -172,6 +185,9 @@ class Renderer:
         self._wavefront = needs_wavefront(scene.material)
         w, h = scene.camera.resolution
         half = scene.sample.size_m / 2.0
+        # A calibration target replaces the sample's BSDF and extent (see board_renderer).
+        hx, hy = (half, half) if sample_extent_m is None else (e / 2.0 for e in sample_extent_m)
+        self.sample_half_extent_m = (hx, hy)
         T = mi.ScalarTransform4f
         to_world = T().look_at(origin=[0.0, 0.0, 1.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0])
         if plan.integrator == "path":
@@ -207,8 +223,8 @@ class Renderer:
             "light": self._light_dict(),
             "sample": {
                 "type": "rectangle",  # one-sided, normal +z, default extent [-1, 1]²
-                "to_world": T().scale([half, half, 1.0]),
-                "bsdf": material_dict(scene.material),
+                "to_world": T().scale([hx, hy, 1.0]),
+                "bsdf": sample_bsdf if sample_bsdf is not None else material_dict(scene.material),
             },
         }
         for k, (centre, ext) in enumerate(holder_walls(scene)):
@@ -376,11 +392,12 @@ class Renderer:
         r_light = np.linalg.norm(to_light, axis=-1)
         wi = to_light / r_light[..., None]
         wo = -dirs
-        half = self.scene.sample.size_m / 2.0
+        hx, hy = self.sample_half_extent_m
         on = (
             np.isfinite(t)
             & (t > 0)
-            & np.all(np.abs(p[..., :2]) <= half, axis=-1)
+            & (np.abs(p[..., 0]) <= hx)
+            & (np.abs(p[..., 1]) <= hy)
             & (wi[..., 2] > 0)
             & (wo[..., 2] > 0)
         )
@@ -431,3 +448,79 @@ class Renderer:
         si.wi = mi.Vector3f(*wo)
         val = self._bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*wi))
         return np.array([val[0], val[1], val[2]], float)
+
+
+@dataclass
+class BoardTarget:
+    """A calibration board rendered by Mitsuba on the sample plane.
+
+    ``renderer`` renders it (its sample is the board texture as a diffuse bitmap);
+    ``board_to_world(points)`` maps board-frame points (OpenCV board frame: x along columns, y
+    along rows, z into the board; metres) to world coordinates (sample frame, +z out of it).
+    """
+
+    renderer: Renderer
+    offset_m: tuple[float, float]
+    extent_m: tuple[float, float]
+
+    def board_to_world(self, points_board) -> np.ndarray:
+        p = np.atleast_2d(np.asarray(points_board, float))
+        ox, oy = self.offset_m
+        # Seen from +z the board must not be mirrored: board y (down the printed image) runs
+        # along world −y and board z (into the board) along world −z.
+        return np.stack([p[:, 0] + ox, -p[:, 1] + oy, -p[:, 2]], axis=-1)
+
+
+def board_renderer(
+    scene: Scene,
+    board,
+    spp: int = 16,
+    variant: str | None = None,
+    black_reflectance: float = 0.05,
+    white_reflectance: float = 0.85,
+) -> BoardTarget:
+    """A Renderer whose sample is ``board`` (ChArUco or chessboard, e.g.
+    ``calibration.camera_model.BoardSpec``) printed on a Lambertian sheet centred on the origin.
+
+    The texture comes from ``simulator.board.board_texture`` (one-square white quiet zone);
+    its grey levels map linearly to reflectances ``black_reflectance`` … ``white_reflectance``.
+    spp = 16 integrates each pixel over a 4×4 grid so square edges get their area coverage.
+    Light it with the scene's lamp, or uniformly with ``stray_light`` (radiance = ρ·L_amb).
+    """
+    import mitsuba as mi
+
+    from simulator.board import BLACK_DN, WHITE_DN, board_texture
+
+    if variant is None:
+        variant = ensure_variant()
+    elif mi.variant() != variant:
+        mi.set_variant(variant)
+    texture, per_m, origin = board_texture(board)
+    level = (texture - BLACK_DN) / (WHITE_DN - BLACK_DN)
+    rho = black_reflectance + (white_reflectance - black_reflectance) * level
+    h_t, w_t = rho.shape
+    sx, sy = w_t / per_m, h_t / per_m
+    # Mitsuba's rectangle has uv = (local + 1)/2 and its bitmap row index grows with v, i.e.
+    # with world +y; the board's rows must run along world −y, hence the vertical flip.
+    bitmap = mi.Bitmap(np.ascontiguousarray(np.repeat(rho[::-1, :, None], 3, axis=2)))
+    bsdf = {
+        "type": "diffuse",
+        "reflectance": {"type": "bitmap", "bitmap": bitmap, "raw": True, "wrap_mode": "clamp"},
+    }
+    # Texel c (centre at integer c, covering [c − ½, c + ½]) sits at world x = (c + ½)/per_m −
+    # sx/2; board X = (c − origin)/per_m. Rows likewise, mirrored.
+    ox = (origin + 0.5) / per_m - sx / 2.0
+    oy = sy / 2.0 - (origin + 0.5) / per_m
+    r = Renderer(scene, spp=spp, variant=variant, sample_bsdf=bsdf, sample_extent_m=(sx, sy))
+    return BoardTarget(renderer=r, offset_m=(ox, oy), extent_m=(sx, sy))
+
+
+def reference_target_scene(scene: Scene, reflectance: float = 0.99) -> Scene:
+    """The same rig with the sample replaced by a Lambertian reference target of albedo
+    ``reflectance`` (f_ref = ρ/π, e.g. Spectralon near normal incidence; DESIGN §7 warns that
+    real Spectralon departs from Lambert at large angles — use a measured or model material for
+    a calibrated f_ref(θ))."""
+    from simulator.scene import DiffuseMaterial
+
+    rho = float(reflectance)
+    return scene.model_copy(update={"material": DiffuseMaterial(reflectance=(rho, rho, rho))})

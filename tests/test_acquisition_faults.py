@@ -40,10 +40,17 @@ PLAN = PlanConfig(
     delta_phi_deg=(180.0, 90.0),
     exposures_s=(0.002,),
 )
-EXPECTED_KEYS = {
-    (i, 0)
-    for i, _ in enumerate(itertools.product(PLAN.theta_i_deg, PLAN.theta_o_deg, PLAN.delta_phi_deg))
-}
+
+
+def _expected_keys(plan: PlanConfig) -> set[tuple[int, int]]:
+    grid = itertools.product(plan.theta_i_deg, plan.theta_o_deg, plan.delta_phi_deg)
+    return {(i, b) for i, _ in enumerate(grid) for b in range(len(plan.exposures_s))}
+
+
+EXPECTED_KEYS = _expected_keys(PLAN)
+# 3 × 6 × 2 = 36 poses, all reachable: ≈ 500 status packets, so 1 % faults
+# occur (the test checks that retries happened).
+BIG_PLAN = PLAN.model_copy(update={"theta_o_deg": (0.0, 10.0, 30.0, 45.0, 65.0, 80.0)})
 TICK_RAD = 2 * math.pi / 4096
 # The driver's arrival tolerance is 8 ticks (DynamixelAxis.tolerance_ticks); gear ratio 1.
 ARRIVAL_RAD = 8 * TICK_RAD
@@ -72,7 +79,9 @@ class SimSession:
 
 
 @contextmanager
-def sim_session(tmp_path: Path, *, on_alert: str = "stop") -> Iterator[SimSession]:
+def sim_session(
+    tmp_path: Path, *, on_alert: str = "stop", plan: PlanConfig = PLAN
+) -> Iterator[SimSession]:
     base = load_rig(REPO / "configs" / "rigs" / "sim.toml")
     base = base.model_copy(update={"bus": base.bus.model_copy(update={"on_alert": on_alert})})
     world = prepare_backends(base)  # registers clock "sim", the light and the sim camera
@@ -82,7 +91,7 @@ def sim_session(tmp_path: Path, *, on_alert: str = "stop") -> Iterator[SimSessio
     )
     store = RunStore.create(tmp_path / "run", tomli_w.dumps({"note": "fault test"}))
     try:
-        yield SimSession(world, transport, config, store, build_plan(config, PLAN))
+        yield SimSession(world, transport, config, store, build_plan(config, plan))
     finally:
         store.close()
         transport.close()
@@ -96,30 +105,28 @@ def _safe_state(world: Any, config: RigConfig, skip_torque: set[int] = frozenset
             assert world.bus.servo(a.id).register("torque_enable") == 0, a.role
 
 
-def _assert_all_data(store: RunStore) -> None:
+def _assert_all_data(store: RunStore, expected: set[tuple[int, int]] = EXPECTED_KEYS) -> None:
     keys = [(c.pose_index, c.bracket_index) for c in store.captures()]
     assert len(keys) == len(set(keys))  # no duplicates
-    assert set(keys) == EXPECTED_KEYS
+    assert set(keys) == expected
     assert store.verify() == []
     assert store.complete
 
 
 def test_one_percent_packet_faults_complete_with_all_data(tmp_path: Path) -> None:
-    with sim_session(tmp_path) as s:
+    with sim_session(tmp_path, plan=BIG_PLAN) as s:
         # 0.5 % dropped + 0.5 % corrupted status packets, on every servo.
         s.world.bus.set_reply_faults(ReplyFaults(drop_p=0.005, bad_crc_p=0.005))
         rig = s.rig()
         try:
-            # Run the plan twice over (resume of a complete plan is not possible, so a second
-            # store) to see enough packets that some faults are certain to have happened.
             outcome = run_acquisition(s.store, rig, s.plan, progress=False)
             retries = rig.axes["light_theta"].bus.stats["retries"]
         finally:
             rig.close()
         assert outcome.complete, outcome.reason
-        _assert_all_data(s.store)
+        _assert_all_data(s.store, _expected_keys(BIG_PLAN))
         # The faults really happened and were retried (else this test proves nothing).
-        assert retries > 0
+        assert retries > 0, retries
         # Every capture's measured axes are where the plan commanded, within arrival tolerance.
         for c in s.store.captures():
             for role, target in c.axes_commanded.items():
@@ -350,3 +357,18 @@ def test_overload_with_on_alert_reboot_recovers_and_completes(tmp_path: Path) ->
         # configured profile (the emulator's register is the truth).
         ax = s.config.axis("light_phi")
         assert s.world.bus.servo(sick).register("profile_velocity") == ax.profile_velocity
+
+
+def test_dead_servo_at_start_is_named_and_the_port_is_released(tmp_path: Path) -> None:
+    from acquisition.protocols import DeviceFault
+
+    with sim_session(tmp_path) as s:
+        dead = s.config.axis("camera_theta")
+        s.world.bus.set_reply_faults(ReplyFaults(drop_p=1.0), servo_id=dead.id)
+        with pytest.raises(DeviceFault, match=f"axis camera_theta: servo {dead.id} does not"):
+            s.rig()
+        # Reconnected: the pty was opened exclusively, so this also proves it was closed.
+        s.world.bus.set_reply_faults(ReplyFaults(), servo_id=dead.id)
+        out = s.run()
+        assert out.complete, out.reason
+        _assert_all_data(s.store)

@@ -95,7 +95,8 @@ def test_kill_9_ten_times_then_complete(tmp_path: Path) -> None:
     # Same poses as the plan: pose index i is the i-th grid combination (expansion order),
     # and the measured angles match it within the arrival tolerance.
     grid = list(itertools.product(THETA_I, THETA_O, DPHI))
-    assert len(build_plan(load_rig(REPO / "configs/rigs/sim.toml"), load_plan(plan_path)).poses)
+    # (Every grid pose is reachable, so no index is missing from the grid.)
+    assert build_plan(load_rig(REPO / "configs/rigs/sim.toml"), load_plan(plan_path)).skipped == []
     for c in captures:
         ti, to, dp = grid[c.pose_index]
         assert abs(c.theta_i - math.radians(ti)) <= ARRIVAL_RAD

@@ -14,6 +14,7 @@ geometry, and the closed-form irradiance of a Lambertian disk lamp on a parallel
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -329,3 +330,17 @@ def test_spot_light_equals_point_inside_beam_and_is_dark_outside_cutoff():
     np.testing.assert_array_equal(img[outside], 0.0)
     between = ~inside & ~outside
     assert np.all(img[between] <= ref[between] * (1 + 1e-5))
+
+
+def test_planned_path_depth_loses_less_than_the_noise_target():
+    # Energy beyond the planned depth (truncation bias) must stay under target_rel_noise: compare
+    # with a render at the cap depth 16 (same seed and spp), averaged over the image.
+    white = {"rim_height_m": 0.01, "wall_thickness_m": 0.005, "reflectance": [0.9, 0.9, 0.9]}
+    scene = _scene(holder=white, material={"type": "diffuse", "reflectance": [0.9, 0.9, 0.9]})
+    r = Renderer(scene)
+    deep = Renderer(scene, plan=dataclasses.replace(r.plan, max_depth=16))
+    assert r.plan.max_depth < 16 and deep.loaded["max_depth"] == 16
+    light = _sph(60.0, 0.0, 0.5)
+    a, b = r.render(light, CAM).mean(), deep.render(light, CAM).mean()
+    assert b >= a * (1 - 1e-6)  # deeper paths only add energy (up to sampling differences)
+    assert (b - a) / b <= scene.render.target_rel_noise

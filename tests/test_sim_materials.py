@@ -11,13 +11,21 @@ from __future__ import annotations
 
 import functools
 import shutil
+from types import SimpleNamespace
 
+import cv2
 import numpy as np
 import pytest
 
 from acquisition.config import ConfigError
 from fitting import models
-from simulator.render import Renderer
+from simulator.render import (
+    Renderer,
+    board_renderer,
+    camera_intrinsics,
+    reference_target_scene,
+    world_to_camera_cv,
+)
 from simulator.scene import (
     CameraSpec,
     MeasuredMaterial,
@@ -170,3 +178,111 @@ def test_builtin_scene_renders_while_a_model_bsdf_is_alive():
     np.testing.assert_allclose(img[m], truth, rtol=1e-3)
     # and the model scene agrees with it (Lambert kd = ρ): the same physics through both BSDFs.
     np.testing.assert_allclose(keep.render(light, cam), img, rtol=1e-5)
+
+
+# --- calibration captures rendered by Mitsuba -------------------------------------------------
+
+
+def test_charuco_board_on_sample_plane_detects_where_the_pinhole_projects_it():
+    # Truth is independent of the renderer: OpenCV's ChArUco detector finds the corners in the
+    # Mitsuba image, and the documented pinhole model (camera_intrinsics, world_to_camera_cv)
+    # projects the board's corner positions there. A mirrored texture would not decode, a wrong
+    # offset or scale would shift every corner by pixels.
+    board = SimpleNamespace(
+        kind="charuco", cols=8, rows=6, square_m=0.03, marker_m=0.022, dictionary="DICT_5X5_100"
+    )
+    # Uniform light: stray light only (radiance ρ·L_amb), the lamp switched off.
+    scene = Scene.model_validate(
+        {
+            "light": {"intensity_W_sr": [0.0, 0.0, 0.0]},
+            "stray_light": {"radiance_W_m2_sr": [1.0, 1.0, 1.0]},
+            "camera": {"resolution": [640, 480], "fov_deg": 35.0},
+        }
+    )
+    target = board_renderer(scene, board)
+    cb = cv2.aruco.CharucoBoard(
+        (8, 6), 0.03, 0.022, cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_5X5_100)
+    )
+    det = cv2.aruco.CharucoDetector(
+        cb, cv2.aruco.CharucoParameters(), cv2.aruco.DetectorParameters()
+    )
+    k = camera_intrinsics(scene)
+    for cam, aim in [
+        ((0.0, 0.0, 0.5), (0.0, 0.0, 0.0)),
+        ((0.15, -0.1, 0.45), (0.01, 0.0, 0.0)),
+        ((-0.2, 0.1, 0.4), (0.0, 0.01, 0.0)),
+    ]:
+        img = target.renderer.render((0.0, 0.0, 1.0), cam, aim)
+        gray = np.clip(img[..., 1] / 0.85 * 230, 0, 255).astype(np.uint8)
+        corners, ids, _, _ = det.detectBoard(gray)
+        assert ids is not None and len(ids) >= 25, cam
+        ids = np.asarray(ids).ravel()
+        world = target.board_to_world(cb.getChessboardCorners()[ids])
+        rot, t = world_to_camera_cv(cam, aim)
+        x = world @ rot.T + t
+        uv = np.stack(
+            [k["fx"] * x[:, 0] / x[:, 2] + k["cx"], k["fy"] * x[:, 1] / x[:, 2] + k["cy"]]
+        )
+        err = np.asarray(corners).reshape(-1, 2) - uv.T
+        # Sub-pixel corner refinement on a 4×4-supersampled render: ~0.1 px is typical;
+        # 0.25 px rms / 0.1 px mean would still catch a half-texel or 1 mm placement error
+        # (1 mm ≈ 1.4 px here).
+        assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.25, cam
+        assert np.all(np.abs(err.mean(axis=0)) < 0.1), cam
+
+
+def test_reference_target_is_lambertian_with_its_albedo():
+    scene = reference_target_scene(_flat_scene(ModelMaterial(model="lambert", parameters={})), 0.9)
+    r = Renderer(scene)
+    wi, wo = _sph(70.0, 0.0)[None], _sph(10.0, 180.0)[None]
+    np.testing.assert_allclose(r.truth_bsdf(wi, wo), 0.9 / np.pi, rtol=1e-6)
+    light, cam = _sph(45.0, 0.0, 0.5), _sph(30.0, 200.0, 0.7)
+    m, truth = _point_lit_truth(r, light, cam, lambda wi, wo: np.full((len(wi), 3), 0.9 / np.pi))
+    np.testing.assert_allclose(r.render(light, cam)[m], truth, rtol=1e-3)
+
+
+_SCALAR_SCRIPT = """
+import json, sys
+import numpy as np
+from fitting import models
+from simulator.render import Renderer
+from simulator.scene import Scene
+params = {"kd": 0.3, "ks": 0.6, "m": 0.3, "ior": 1.5}
+scene = Scene.model_validate({
+    "material": {"type": "model", "parameters": params},
+    "sample": {"size_m": 0.2},
+    "light": {"intensity_W_sr": [1.0, 1.0, 1.0]},
+    "camera": {"resolution": [9, 9], "fov_deg": 10.0},
+})
+r = Renderer(scene, variant="scalar_rgb")
+light, cam = np.array([-0.25, 0.05, 0.4]), np.array([0.3, 0.0, 0.55])
+img = r.render(light, cam)
+geo = r.pixel_geometry(light, cam)
+m = geo["on_sample"]
+f = models.get("torrance-sparrow").evaluate(params, geo["wi"][m], geo["wo"][m], backend="numpy")
+truth = f * geo["wi"][m, 2] / geo["r_light_m"][m] ** 2
+print(json.dumps({"variant": r.variant, "n": int(m.sum()),
+                  "rel": float(np.max(np.abs(img[m][:, 1] / truth - 1)))}))
+"""
+
+
+def test_model_bsdf_in_scalar_variant():
+    # scalar_rgb calls the Python BSDF per ray with scalar types (a different code path from
+    # llvm's arrays); a child interpreter keeps this process's variant untouched.
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, GONIO_MITSUBA_VARIANT="scalar_rgb")
+    out = subprocess.run(
+        [sys.executable, "-c", _SCALAR_SCRIPT],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert res["variant"] == "scalar_rgb" and res["n"] > 40
+    assert res["rel"] < 1e-3  # same float32 bound as the llvm test
