@@ -7,6 +7,7 @@ all work (the simulator installs that URL handler; this module never imports it)
 
 from __future__ import annotations
 
+import math
 import threading
 
 import serial
@@ -118,6 +119,12 @@ class SerialLight:
             if len(parts) != 5 or parts[0] != "STAT" or parts[1] not in ("ON", "OFF"):
                 raise ValueError
             level, measured = float(parts[2]), float(parts[3])
+            # float() also takes "nan"/"inf": garbage that must not become a reading
+            # (found by fuzzing). The protocol's ranges: level in [0, 1], measured >= 0.
+            if not (0.0 <= level <= 1.0 and 0.0 <= measured < math.inf):
+                raise ValueError
+            if parts[4] != "OK" and not parts[4].startswith("FAULT:"):
+                raise ValueError
         except ValueError:
             raise LightError(f"light {self.url}: malformed STAT? reply {reply!r}") from None
         health = parts[4]

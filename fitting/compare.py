@@ -32,7 +32,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.special import logsumexp
 
 __all__ = [
     "COMPARE_SCHEMA_VERSION",
@@ -59,6 +58,41 @@ COMPARE_SCHEMA_VERSION = 1
 KHAT_BAD = 0.7
 
 
+def _lse(a: np.ndarray, axis: int = 0) -> np.ndarray:
+    """ln Σ exp(a) along ``axis``, max-shifted (scipy's logsumexp costs ~10× more here)."""
+    mx = np.max(a, axis=axis, keepdims=True)
+    mx = np.where(np.isfinite(mx), mx, 0.0)
+    with np.errstate(divide="ignore"):
+        out = np.log(np.sum(np.exp(a - mx), axis=axis, keepdims=True)) + mx
+    return np.squeeze(out, axis=axis)
+
+
+def _gpd_fit_columns(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`gpd_fit` for every column of ``x`` (M, n) at once (each column sorted ascending)."""
+    x = np.asarray(x, dtype=np.float64)
+    n = x.shape[0]
+    m = 30 + int(math.sqrt(n))
+    grid = 1.0 - np.sqrt(m / (np.arange(1, m + 1, dtype=np.float64) - 0.5))
+    with np.errstate(all="ignore"):
+        b = grid[:, None] / (3.0 * x[int(n / 4 + 0.5) - 1])[None, :] + (1.0 / x[-1])[None, :]
+        k = np.empty_like(b)
+        step = max(1, 4_000_000 // (m * n))  # columns per chunk: ≤ 4e6 temporaries
+        for c in range(0, x.shape[1], step):
+            k[:, c : c + step] = np.log1p(
+                -b[:, None, c : c + step] * x[None, :, c : c + step]
+            ).mean(axis=1)
+        profile = n * (np.log(-b / k) - k - 1.0)
+        # Normalised exp(profile) (= 1/Σ_j exp(L_j − L_i)); weights < 10 ε are dropped.
+        w = np.exp(profile - _lse(profile, axis=0))
+        w = np.where(w >= 10 * np.finfo(float).eps, w, 0.0)
+        w /= w.sum(axis=0)
+        b_post = np.sum(b * w, axis=0)
+        k_post = np.log1p(-b_post[None, :] * x).mean(axis=0)
+        sigma = -k_post / b_post
+    k_post = (n * k_post + 10 * 0.5) / (n + 10)
+    return k_post, sigma
+
+
 def gpd_fit(x: np.ndarray) -> tuple[float, float]:
     """Generalized Pareto (shape k, scale σ) fitted to exceedances ``x`` > 0, sorted ascending.
 
@@ -67,63 +101,79 @@ def gpd_fit(x: np.ndarray) -> tuple[float, float]:
     of m = 30 + ⌊√n⌋ points, k = mean ln(1 − b x) (k > 0: heavy tail), σ = −k/b; then the
     weakly informative prior of Vehtari et al. (2017, appendix), k ← (n k + 5)/(n + 10).
     """
-    x = np.asarray(x, dtype=np.float64)
-    n = x.size
-    m = 30 + int(math.sqrt(n))
-    b = 1.0 - np.sqrt(m / (np.arange(1, m + 1, dtype=np.float64) - 0.5))
-    b /= 3.0 * x[int(n / 4 + 0.5) - 1]
-    b += 1.0 / x[-1]
-    k = np.log1p(-b[:, None] * x).mean(axis=1)
-    profile = n * (np.log(-b / k) - k - 1.0)
-    # weights_i = 1 / Σ_j exp(L_j − L_i): normalised exp(L), computed without overflow.
-    with np.errstate(over="ignore"):  # exp → inf gives weight 0, dropped just below
-        w = 1.0 / np.exp(profile[None, :] - profile[:, None]).sum(axis=1)
-    keep = w >= 10 * np.finfo(float).eps
-    w, b = w[keep], b[keep]
-    w /= w.sum()
-    b_post = float(np.sum(b * w))
-    k_post = float(np.log1p(-b_post * x).mean())
-    sigma = -k_post / b_post
-    k_post = (n * k_post + 10 * 0.5) / (n + 10)
-    return k_post, sigma
+    k, sigma = _gpd_fit_columns(np.asarray(x, dtype=np.float64)[:, None])
+    return float(k[0]), float(sigma[0])
 
 
-def _gpd_quantile(p: np.ndarray, k: float, sigma: float) -> np.ndarray:
+def _gpd_quantile(p: np.ndarray, k, sigma) -> np.ndarray:
     """Inverse CDF of the GPD: σ ((1 − p)^(−k) − 1)/k, or −σ ln(1 − p) for k → 0."""
-    if abs(k) < 1e-12:
-        return -sigma * np.log1p(-p)
-    return sigma * np.expm1(-k * np.log1p(-p)) / k
+    k = np.asarray(k, dtype=np.float64)
+    small = np.abs(k) < 1e-12
+    with np.errstate(all="ignore"):
+        q = sigma * np.expm1(-k * np.log1p(-p)) / np.where(small, 1.0, k)
+    return np.where(small, -sigma * np.log1p(-p), q)
+
+
+def _psis_column(x: np.ndarray, m: int) -> tuple[np.ndarray, float]:
+    """One column (log ratios minus their max), general case: ties and tiny cutoffs."""
+    tiny = math.log(np.finfo(float).tiny)
+    x = x.copy()
+    order = np.argsort(x)
+    cutoff = max(x[order[-m - 1]], tiny)
+    tail = np.flatnonzero(x > cutoff)
+    khat = math.inf
+    if tail.size > 4:
+        t_order = np.argsort(x[tail])
+        exceed = np.exp(x[tail][t_order]) - math.exp(cutoff)
+        k, sigma = gpd_fit(exceed)
+        khat = k if math.isfinite(k) else math.inf
+        if math.isfinite(k):
+            p = (np.arange(tail.size) + 0.5) / tail.size
+            x[tail[t_order]] = np.log(_gpd_quantile(p, k, sigma) + math.exp(cutoff))
+            x[x > 0] = 0.0  # truncate at the largest raw ratio
+    return x - _lse(x), khat
 
 
 def psis_smooth(log_ratios: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pareto-smoothed importance log-weights for log ratios (S, n) → (log w (S, n), k̂ (n,)).
 
-    Each column's log weights are normalised (logsumexp = 0). A column whose tail has ≤ 4
-    draws gets k̂ = inf and is left unsmoothed.
+    Each column's log weights are normalised (logsumexp = 0). The M largest ratios of each
+    column are replaced by GPD quantiles at (z − ½)/M, z = 1…M, truncated at the largest raw
+    ratio. A column whose tail has ≤ 4 draws gets k̂ = inf and is left unsmoothed. Columns are
+    processed together; ones with ties at the cutoff take the per-column path.
     """
     lr = np.asarray(log_ratios, dtype=np.float64)
     if lr.ndim == 1:
         lr = lr[:, None]
     s, n = lr.shape
     m = int(math.ceil(min(0.2 * s, 3.0 * math.sqrt(s))))
-    out = np.empty_like(lr)
-    khat = np.full(n, np.inf)
+    # Rows = samples j, contiguous draws: the sorts and gathers run along memory.
+    x = np.ascontiguousarray((lr - lr.max(axis=0)).T)  # max 0: no overflow in exp
+    order = np.argsort(x, axis=1)
+    xs = np.take_along_axis(x, order, axis=1)
+    cutoff = xs[:, s - m - 1]
     tiny = math.log(np.finfo(float).tiny)
-    for j in range(n):
-        x = lr[:, j] - np.max(lr[:, j])  # max 0: no overflow in exp
-        order = np.argsort(x)
-        cutoff = max(x[order[-m - 1]], tiny)
-        tail = np.flatnonzero(x > cutoff)
-        if tail.size > 4:
-            t_order = np.argsort(x[tail])
-            exceed = np.exp(x[tail][t_order]) - math.exp(cutoff)
-            k, sigma = gpd_fit(exceed)
-            khat[j] = k
-            if np.isfinite(k):
-                p = (np.arange(tail.size) + 0.5) / tail.size
-                x[tail[t_order]] = np.log(_gpd_quantile(p, k, sigma) + math.exp(cutoff))
-                x[x > 0] = 0.0  # truncate at the largest raw ratio
-        out[:, j] = x - logsumexp(x)
+    simple = (cutoff > tiny) & (xs[:, s - m] > cutoff) & (m > 4)
+    khat = np.full(n, np.inf)
+    if simple.any():
+        cols = np.flatnonzero(simple)
+        exp_cut = np.exp(cutoff[cols])
+        exceed = np.exp(xs[cols, s - m :].T) - exp_cut
+        k, sigma = _gpd_fit_columns(exceed)
+        ok = np.isfinite(k) & np.isfinite(sigma)
+        p = ((np.arange(m) + 0.5) / m)[:, None]
+        with np.errstate(all="ignore"):
+            smooth = np.log(_gpd_quantile(p, k[None, :], sigma[None, :]) + exp_cut[None, :])
+        smooth = np.minimum(smooth, 0.0)  # truncate at the largest raw ratio
+        tail = xs[cols, s - m :].T
+        xs[cols, s - m :] = np.where(ok[None, :], smooth, tail).T
+        khat[cols] = np.where(ok, k, np.inf)
+    out_t = np.empty_like(x)
+    np.put_along_axis(out_t, order, xs, axis=1)
+    out_t -= _lse(out_t, axis=1)[:, None]
+    out = out_t.T
+    for j in np.flatnonzero(~simple):
+        out[:, j], khat[j] = _psis_column(x[j], m)
     return out, khat
 
 
@@ -136,7 +186,7 @@ def waic(ll: np.ndarray) -> dict:
     """WAIC from pointwise ln-likelihoods (S, n): elpd, se, p_waic, waic = −2 elpd, pointwise."""
     ll = np.asarray(ll, dtype=np.float64)
     s = ll.shape[0]
-    lppd = logsumexp(ll, axis=0) - math.log(s)
+    lppd = _lse(ll, axis=0) - math.log(s)
     with np.errstate(invalid="ignore"):
         p = np.var(ll, axis=0, ddof=1)
     elpd_i = lppd - p
@@ -155,8 +205,8 @@ def psis_loo(ll: np.ndarray) -> dict:
     ll = np.asarray(ll, dtype=np.float64)
     s = ll.shape[0]
     lw, khat = psis_smooth(-ll)
-    elpd_i = logsumexp(lw + ll, axis=0)
-    lppd = logsumexp(ll, axis=0) - math.log(s)
+    elpd_i = _lse(lw + ll, axis=0)
+    lppd = _lse(ll, axis=0) - math.log(s)
     return {
         "elpd": float(elpd_i.sum()),
         "se": _se(elpd_i),
@@ -169,7 +219,7 @@ def psis_loo(ll: np.ndarray) -> dict:
     }
 
 
-def posterior_draws(result, max_draws: int = 800, seed: int = 0) -> np.ndarray:
+def posterior_draws(result, max_draws: int = 500, seed: int = 0) -> np.ndarray:
     """Up to ``max_draws`` posterior draws (S, D) in the sampled space from a fresh FitResult.
 
     MCMC chain if there is one (thinned evenly, so autocorrelation is spread), else the
@@ -182,11 +232,22 @@ def posterior_draws(result, max_draws: int = 800, seed: int = 0) -> np.ndarray:
         idx = np.linspace(0, flat.shape[0] - 1, min(max_draws, flat.shape[0])).astype(int)
         return flat[idx]
     lsq, space = ex["lsq"], ex["space"]
+    # The reported MAP (fit_samples sets the discrepancy s by a 1-D search after LSQ).
+    x = space.to_internal(np.array([result.parameters[n]["map"] for n in space.names]))
     if lsq.cov is None:
-        return np.asarray(lsq.x, dtype=np.float64)[None, :]
+        return x[None, :]
+    # As fit_samples: s is held at its point value (LSQ does not constrain it), and with s
+    # fitted the covariance is inflated by max(1, χ²/dof) (Birge ratio).
+    cov = np.array(lsq.cov, dtype=np.float64)
+    i_disc = [i for i, sp in enumerate(space.specs) if sp.base == "discrepancy"]
+    for i in i_disc:
+        cov[i, :] = cov[:, i] = 0.0
+    red = result.goodness.get("chi2_red")
+    if i_disc and red is not None and math.isfinite(red):
+        cov *= max(1.0, float(red))
     lo, hi = space.bounds
     rng = np.random.default_rng(seed)
-    d = rng.multivariate_normal(lsq.x, lsq.cov, size=max_draws, method="eigh")
+    d = rng.multivariate_normal(x, cov, size=max_draws, method="eigh")
     return np.clip(d, lo, hi)
 
 
@@ -235,7 +296,7 @@ class ModelScore:
 
 
 def score_fit(
-    result, label: str | None = None, *, max_draws: int = 800, seed: int = 0
+    result, label: str | None = None, *, max_draws: int = 500, seed: int = 0
 ) -> ModelScore:
     """WAIC, PSIS-LOO, AIC, BIC of a fresh :class:`fitting.result.FitResult` (with extras)."""
     lik = result.extras["likelihood"]
@@ -349,7 +410,9 @@ def candidates(
     compare_shared: bool = False,
 ) -> list[Candidate]:
     """The fits a ``gonio fit --model`` call asks for. ``model="all"``: every registered model
-    (``options`` go to the models that take them, i.e. torrance-sparrow). With
+    (``options`` go to the models that take them, i.e. torrance-sparrow; shared names a model
+    lacks are dropped for it). ``m`` stands for the Phong exponent n where a model has no m;
+    any other unknown shared name is an error for a single model. With
     ``compare_shared`` each model whose shared set is non-empty is fitted again with every
     parameter per channel (label suffix ``-per-channel``)."""
     from fitting import models as registry
@@ -362,6 +425,12 @@ def candidates(
             opts = {}
         m = registry.get(name, **opts)
         sh = _shared_for(m, shared)
+        unknown = set(shared) - set(m.parameter_names) - {"m"}
+        if model != "all" and unknown:
+            raise ValueError(
+                f"--shared {', '.join(sorted(unknown))}: not a parameter of {name} "
+                f"(parameters: {', '.join(m.parameter_names)})"
+            )
         out.append(Candidate(name, name, opts, sh))
         if compare_shared and sh:
             out.append(Candidate(f"{name}-per-channel", name, opts, ()))
@@ -392,7 +461,7 @@ def run_comparison(
     out_dir: str | os.PathLike,
     fix: Mapping[str, float] | None = None,
     priors=None,
-    max_draws: int = 800,
+    max_draws: int = 500,
     on_fit=None,
     **fit_kwargs,
 ) -> tuple[list[ModelScore], dict]:

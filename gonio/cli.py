@@ -261,7 +261,8 @@ def fit(
             num(s.aic),
             num(s.bic),
         )
-    out.print(t, width=max(out.width, 140))  # wrapped numbers are unreadable
+    # Wrapped or truncated numbers are unreadable: give the table the width it needs.
+    Console(width=max(out.width, 150)).print(t)
     for s in ranked:
         for w in s.warnings:
             out.print(f"note: {s.label}: {w}")
@@ -418,6 +419,76 @@ def rig_check(
     out.print(rig_check_table(cfg, rows))
     if not all(r.ok for r in rows):
         raise typer.Exit(3)
+
+
+study_app = typer.Typer(no_args_is_help=True, help="Studies run on the simulated rig.")
+app.add_typer(study_app, name="study")
+
+
+@study_app.command("accuracy-vs-time")
+def study_accuracy_vs_time(
+    quick: Annotated[bool, typer.Option("--quick", help="The ≤ 10-minute sweep.")] = False,
+    scene: Annotated[Path | None, typer.Option("--scene", help="Base scene (sensor, light, "
+                                               "camera); materials are the study's.")] = None,
+    seeds: Annotated[int | None, typer.Option("--seeds", help="Repeats per configuration.")]
+    = None,
+    out_dir: Annotated[Path, typer.Option("--out", help="Where the document, plot and CSV go.")]
+    = Path("docs"),
+) -> None:
+    """What accuracy costs in time: sweep poses, exposures and MCMC length on the simulated rig;
+    writes accuracy-vs-time.md, .png and .csv."""
+    from gonio.errors import UserError
+    from gonio.study import StudyConfig, run_study
+
+    if seeds is not None and seeds < 1:
+        raise UserError("--seeds must be ≥ 1")
+    cfg = StudyConfig.quick(seeds) if quick else StudyConfig(seeds=seeds or 3)
+    rows = run_study(out_dir, cfg, scene_path=scene, progress=True)
+    out.print(f"{out_dir / 'accuracy-vs-time.md'}: {len(rows)} result rows")
+
+
+@app.command(name="plan")
+def plan_cmd(
+    target: Annotated[str, typer.Option("--target", help="PARAM=REL_ERROR, e.g. m=0.05.")]
+    = ...,  # type: ignore[assignment]
+    material: Annotated[str, typer.Option(help='Material character: "rough" or "glossy".')]
+    = "rough",
+    results: Annotated[Path, typer.Option(help="Study CSV.")] = Path(
+        "docs/accuracy-vs-time.csv"
+    ),
+) -> None:
+    """Pick the cheapest plan expected to reach a target accuracy (from the study's results)."""
+    from gonio.errors import UserError
+    from gonio.study import pick_plan, read_csv
+
+    param, sep, value = target.partition("=")
+    try:
+        rel = float(value)
+    except ValueError:
+        rel = -1.0
+    if not sep or not param or not 0 < rel < 1:
+        raise UserError(f"--target {target!r}: expected PARAM=REL_ERROR with 0 < REL_ERROR < 1")
+    if not results.exists():
+        raise UserError(
+            f"{results}: no study results; run `gonio study accuracy-vs-time --quick` first"
+        )
+    rows = read_csv(results)
+    if not any(r["param"] == param for r in rows):
+        known = ", ".join(sorted({r["param"] for r in rows}))
+        raise UserError(f"--target: parameter {param!r} is not in the study (known: {known})")
+    if not any(r["material"] == material for r in rows):
+        raise UserError(f"--material {material!r} is not in the study")
+    best = pick_plan(rows, param, rel, material)
+    if best is None:
+        raise UserError(
+            f"no plan in the study reaches ±{100 * rel:g}% on {param} for a {material} material"
+        )
+    out.print(
+        f"{best['plan']}: {best['poses']} poses, {best['exposures']} exposure, "
+        f"MCMC {best['mcmc_steps']} steps → expected {param} error "
+        f"{100 * best['rel_error']:.2f}% (median over seeds); expected lab time "
+        f"{best['lab_time_s'] / 60:.1f} min"
+    )
 
 
 def main() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,6 +17,7 @@ from acquisition.plans import build_plan
 from acquisition.rig import build_rig
 from acquisition.runner import RunOutcome, fmt_duration, run_acquisition, stop_requests
 from acquisition.store import RunStore
+from fitting.atomic import atomic_write_bytes
 from gonio.backends import prepare_backends
 from gonio.errors import UserError
 
@@ -69,6 +71,8 @@ def acquire(
     progress: bool = True,
     rig_config: RigConfig | None = None,
     plan_config: PlanConfig | None = None,
+    scene_config: Any | None = None,
+    announce: bool = True,
 ) -> AcquireResult:
     """Start a run in `out`, or resume it when `out` holds an incomplete run."""
     out = Path(out)
@@ -87,7 +91,9 @@ def acquire(
             raise UserError(f"{out}: exists and is not a gonio run; choose a new --out directory")
         rig = rig_config or load_rig(_need(rig_path, "--rig"))
         plan_cfg = plan_config or load_plan(_need(plan_path, "--plan"))
-        if scene_path is not None:
+        if scene_config is not None:
+            scene = scene_config
+        elif scene_path is not None:
             from simulator.scene import load_scene
 
             scene = load_scene(scene_path)
@@ -95,12 +101,14 @@ def acquire(
     world = prepare_backends(rig, scene)
     plan = build_plan(rig, plan_cfg)
     lab_estimate = plan.lab_time_s(rig.camera.readout_s, rig.settle_s)
-    console.print(
-        f"plan {plan_cfg.name}: {len(plan.poses)} poses × {len(plan_cfg.exposures_s)} exposure(s)"
-        f", {len(plan.skipped)} unreachable skipped; estimated lab time "
-        f"{fmt_duration(lab_estimate)} (moves {fmt_duration(plan.move_time_s)}, raster order "
-        f"would be {fmt_duration(plan.raster_move_time_s)})"
-    )
+    if announce:
+        console.print(
+            f"plan {plan_cfg.name}: {len(plan.poses)} poses × "
+            f"{len(plan_cfg.exposures_s)} exposure(s), {len(plan.skipped)} unreachable "
+            f"skipped; estimated lab time "
+            f"{fmt_duration(lab_estimate)} (moves {fmt_duration(plan.move_time_s)}, raster order "
+            f"would be {fmt_duration(plan.raster_move_time_s)})"
+        )
     rig_dev = build_rig(rig)
     try:
         if store is None:
@@ -194,6 +202,8 @@ def demo(out: Path | None, scene_path: Path | None, quick: bool, progress: bool 
     t = time.perf_counter()
     report = write_report(out, compute_times_s=timings)
     timings["report"] = time.perf_counter() - t
+    # Kept beside the run so `gonio report` and benchmarks can show what each stage cost.
+    atomic_write_bytes(out / "timings.json", (json.dumps(timings, indent=2) + "\n").encode())
     return report
 
 

@@ -290,7 +290,8 @@ def _residual_map(samples, fit: dict) -> str | None:
         ax.set_ylabel("θd [deg]")
         ax.set_title(f"channel {ch}", fontsize=10)
         ax.set_facecolor("#eeeeee")
-    fig.colorbar(im, ax=axes[0].tolist(), label="mean (f − f̂)/σ per bin", shrink=0.9)
+    label = f"mean (f − f̂)/σ per bin (colours clipped at ±{lim:.0f})"
+    fig.colorbar(im, ax=axes[0].tolist(), label=label, shrink=0.9)
     fig.suptitle(
         "Normalised residuals at the MAP (red: measured above the model; grey: no samples)",
         fontsize=10,
@@ -312,6 +313,17 @@ def _preview(fit: dict) -> tuple[str | None, str]:
     return uri, f"Mitsuba material: {mat['type']} (posterior medians; see material-*.xml)"
 
 
+def _best_label(run_dir: Path) -> str | None:
+    """Label of the rank-1 model in compare.json, if there is one."""
+    from fitting.compare import read_compare
+
+    try:
+        rows = read_compare(run_dir / "compare.json")
+        return str(rows[0]["label"]) if rows and isinstance(rows[0], dict) else None
+    except (ValueError, KeyError):
+        return None
+
+
 def _compare_section(run_dir: Path) -> list[str]:
     path = run_dir / "compare.json"
     if not path.exists():
@@ -322,6 +334,11 @@ def _compare_section(run_dir: Path) -> list[str]:
         rows = read_compare(path)
     except ValueError as exc:
         return ["<h2>Model comparison</h2>", f"<p class='bad'>{html.escape(str(exc))}</p>"]
+
+    def fixed(x: Any, digits: int = 1) -> str:
+        # Fixed point, not significant digits: elpd values of 8.05e4 differing by 1 must show.
+        return f"{x:.{digits}f}" if isinstance(x, int | float) and math.isfinite(x) else "–"
+
     body = []
     for r in rows:
         if not isinstance(r, dict):
@@ -332,15 +349,15 @@ def _compare_section(run_dir: Path) -> list[str]:
                 r.get("label"),
                 ", ".join(map(str, r.get("shared") or [])) or "–",
                 r.get("k"),
-                r.get("elpd_loo"),
-                r.get("se_loo"),
-                r.get("p_loo"),
-                r.get("waic"),
-                r.get("d_elpd"),
-                r.get("d_se"),
-                r.get("khat_max"),
-                r.get("aic"),
-                r.get("bic"),
+                fixed(r.get("elpd_loo")),
+                fixed(r.get("se_loo")),
+                fixed(r.get("p_loo")),
+                fixed(r.get("waic")),
+                fixed(r.get("d_elpd")),
+                fixed(r.get("d_se")),
+                fixed(r.get("khat_max"), 2),
+                fixed(r.get("aic")),
+                fixed(r.get("bic")),
                 "; ".join(map(str, r.get("warnings") or [])),
             ]
         )
@@ -409,6 +426,11 @@ def write_report(run_dir: Path | str, compute_times_s: dict[str, float] | None =
     fit_paths = sorted(run_dir.glob("fit-*.json"))
     fits = [json.loads(p.read_text()) for p in fit_paths]
     labels = [p.stem[len("fit-") :] for p in fit_paths]
+    best = _best_label(run_dir)
+    if best in labels:  # the preferred model first: its curves go on the slice plot
+        i = labels.index(best)
+        labels.insert(0, labels.pop(i))
+        fits.insert(0, fits.pop(i))
     truth: dict[str, float] = {}
     if "scene" in cfg:
         from simulator.scene import Scene
@@ -530,6 +552,16 @@ def write_report(run_dir: Path | str, compute_times_s: dict[str, float] | None =
             )
         else:
             parts.append(f"<p class='bad'>{html.escape(note)}</p>")
+        try:
+            from fitting.export import material_xml
+
+            xml = material_xml(fit)
+        except (KeyError, ValueError, TypeError) as exc:
+            xml = f"no Mitsuba export: {type(exc).__name__}: {exc}"
+        parts.append(
+            "<details><summary>Mitsuba 3 material (XML)</summary>"
+            f"<pre>{html.escape(xml)}</pre></details>"
+        )
     parts += _compare_section(run_dir)
     parts.append("<h2>Time</h2>")
     parts.append(

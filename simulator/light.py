@@ -125,7 +125,10 @@ class EmulatedLight:
                 raw, _, rest = bytes(self._buf).partition(b"\n")
                 self._buf = bytearray(rest)
                 text = raw.rstrip(b"\r").decode("ascii", errors="replace")
-                out.append(Reply((self.command(text) + "\n").encode("ascii")))
+                # errors="replace": an echoed unknown command may hold non-ASCII characters
+                # (found by fuzzing: b"\xff\n" raised UnicodeEncodeError); they go out as "?".
+                reply = self.command(text) + "\n"
+                out.append(Reply(reply.encode("ascii", errors="replace")))
         return out
 
 

@@ -263,6 +263,10 @@ class EmulatedBus:
         addr, length = _u16(params, 0), _u16(params, 2)
         ids = list(params[4:])
         total = 1 + len(ids) * (length + 4)  # inst + records (the last "crc" is the packet's)
+        if total > 0xFFFF:
+            # LEN is 16 bits: no servo can form this reply, so none is sent (found by fuzzing:
+            # building it raised ValueError).
+            return []
         pkt = bytearray(P.HEADER) + bytes([P.BROADCAST_ID, total & 0xFF, total >> 8])
         pkt.append(P.INST_STATUS)
         complete = True
