@@ -35,6 +35,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
+from fitting.atomic import atomic_write_bytes
+
 __all__ = [
     "MODEL_PLUGIN",
     "material_dict",
@@ -179,6 +181,4 @@ def material_xml(fit, estimate: str = "median", bsdf_id: str | None = None) -> s
 
 def write_material_xml(fit, path: str | os.PathLike, estimate: str = "median") -> Path:
     """Write :func:`material_xml` to ``path``."""
-    path = Path(path)
-    path.write_text(material_xml(fit, estimate))
-    return path
+    return atomic_write_bytes(path, material_xml(fit, estimate).encode())

@@ -428,12 +428,16 @@ app.add_typer(study_app, name="study")
 @study_app.command("accuracy-vs-time")
 def study_accuracy_vs_time(
     quick: Annotated[bool, typer.Option("--quick", help="The ≤ 10-minute sweep.")] = False,
-    scene: Annotated[Path | None, typer.Option("--scene", help="Base scene (sensor, light, "
-                                               "camera); materials are the study's.")] = None,
-    seeds: Annotated[int | None, typer.Option("--seeds", help="Repeats per configuration.")]
-    = None,
-    out_dir: Annotated[Path, typer.Option("--out", help="Where the document, plot and CSV go.")]
-    = Path("docs"),
+    scene: Annotated[
+        Path | None,
+        typer.Option(
+            "--scene", help="Base scene (sensor, light, camera); materials are the study's."
+        ),
+    ] = None,
+    seeds: Annotated[int | None, typer.Option("--seeds", help="Repeats per configuration.")] = None,
+    out_dir: Annotated[
+        Path, typer.Option("--out", help="Where the document, plot and CSV go.")
+    ] = Path("docs"),
 ) -> None:
     """What accuracy costs in time: sweep poses, exposures and MCMC length on the simulated rig;
     writes accuracy-vs-time.md, .png and .csv."""
@@ -449,13 +453,11 @@ def study_accuracy_vs_time(
 
 @app.command(name="plan")
 def plan_cmd(
-    target: Annotated[str, typer.Option("--target", help="PARAM=REL_ERROR, e.g. m=0.05.")]
-    = ...,  # type: ignore[assignment]
-    material: Annotated[str, typer.Option(help='Material character: "rough" or "glossy".')]
-    = "rough",
-    results: Annotated[Path, typer.Option(help="Study CSV.")] = Path(
-        "docs/accuracy-vs-time.csv"
-    ),
+    target: Annotated[str, typer.Option("--target", help="PARAM=REL_ERROR, e.g. m=0.05.")] = ...,  # type: ignore[assignment]
+    material: Annotated[
+        str, typer.Option(help='Material character: "rough" or "glossy".')
+    ] = "rough",
+    results: Annotated[Path, typer.Option(help="Study CSV.")] = Path("docs/accuracy-vs-time.csv"),
 ) -> None:
     """Pick the cheapest plan expected to reach a target accuracy (from the study's results)."""
     from gonio.errors import UserError

@@ -15,6 +15,7 @@ def user_error_types() -> tuple[type[BaseException], ...]:
 
     from acquisition.config import ConfigError
     from acquisition.kinematics import Unreachable
+    from acquisition.protocols import DeviceFault
     from acquisition.store import RunStoreError
     from calibration.reduce import CalibrationError
     from fitting.samples import SamplesError
@@ -22,6 +23,7 @@ def user_error_types() -> tuple[type[BaseException], ...]:
     types: list[type[BaseException]] = [
         UserError,
         ConfigError,
+        DeviceFault,  # a rig that cannot start (no reply, latched alert): one line, not a trace
         Unreachable,
         RunStoreError,
         CalibrationError,

@@ -172,6 +172,7 @@ class Timings:
 def demo(out: Path | None, scene_path: Path | None, quick: bool, progress: bool = True) -> Path:
     """Simulated acquisition → calibration → fit → report into `out`; returns the report path."""
     from calibration.reduce import ReduceOptions, reduce_run
+    from fitting.export import write_material_xml
     from fitting.fit import fit_samples
     from gonio.report import write_report
 
@@ -197,8 +198,10 @@ def demo(out: Path | None, scene_path: Path | None, quick: bool, progress: bool 
     timings["calibrate"] = time.perf_counter() - t
     t = time.perf_counter()
     demo_fit = _demo_fit_settings(quick)
-    fit_samples(table, out_dir=out, progress=progress, **demo_fit)
+    fit = fit_samples(table, out_dir=out, progress=progress, **demo_fit)
     timings["fit"] = time.perf_counter() - t
+    # The fitted material for a renderer: built-in roughconductor/blendbsdf where exact.
+    write_material_xml(fit, out / f"material-{demo_fit['model_name']}.xml")
     t = time.perf_counter()
     report = write_report(out, compute_times_s=timings)
     timings["report"] = time.perf_counter() - t

@@ -44,6 +44,7 @@ def test_demo_writes_every_contract_file(demo_run: Path) -> None:
         "report.html",
         "fit-torrance-sparrow.json",
         "fit-torrance-sparrow.h5",
+        "material-torrance-sparrow.xml",
     ):
         assert (demo_run / name).exists(), name
     store = RunStore.open(demo_run)
