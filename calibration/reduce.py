@@ -260,7 +260,7 @@ def _decode_pose(recs, run_dir, skipped):
     return good, decoded
 
 
-def _merge_pose(decoded, exposures, radiometry, darks, flat):
+def _merge_pose(decoded, exposures, radiometry, darks, flat, on_sample=None):
     """Dark-subtract, convert to electrons, HDR-merge and flat-correct at full resolution.
 
     Returns flux (e/s per photosite or pixel, flat-corrected), its variance and the
@@ -290,7 +290,10 @@ def _merge_pose(decoded, exposures, radiometry, darks, flat):
     flux, var, all_sat = merge_brackets(electrons, exposures, sats, np.asarray(noise_sd))
     # Second pass: weights and variance from the neighbours' flux, not the pixel's own noisy
     # value (see merge_brackets: an own-value variance biases the fit by O(1/N_electrons)).
-    local = _local_mean(flux, ~all_sat, cfa=decoded[0].channels == "CFA")
+    # Neighbours off the sample (holder, background) must not enter the local estimate: at the
+    # edge they would pull it down and understate the variance of edge pixels.
+    valid = ~all_sat if on_sample is None else ~all_sat & _broadcast_mask(on_sample, flux)
+    local = _local_mean(flux, valid, cfa=decoded[0].channels == "CFA")
     # Which brackets to trust is decided from the neighbours' flux too. Dropping a bracket only
     # when the pixel's own value crossed the clip level is a selection on its noise: near the
     # threshold the long exposure survives only when it fluctuated low, biasing the flanks of
@@ -310,6 +313,10 @@ def _merge_pose(decoded, exposures, radiometry, darks, flat):
             raise CalibrationError(f"flat field shape {flat.gain.shape} ≠ frame {flux.shape}")
         flux, var = flat.apply(flux, var)
     return flux, var, all_sat
+
+
+def _broadcast_mask(mask: np.ndarray, like: np.ndarray) -> np.ndarray:
+    return mask if like.ndim == mask.ndim else np.broadcast_to(mask[..., None], like.shape)
 
 
 def _local_mean(flux: np.ndarray, valid: np.ndarray, *, cfa: bool) -> np.ndarray:
@@ -338,22 +345,25 @@ def _reduce_pose(
     recs, decoded, radiometry, intr, kin, intensity, sample_size_m, options, cols, darks, flat
 ) -> None:
     exposures = [float(r.exposure_s) for r in recs]
-    flux_all, var_all, sat_all = _merge_pose(decoded, exposures, radiometry, darks, flat)
+    axes = recs[0].axes_measured
+    cam_pos, light_pos = kin.camera_position_m(axes), kin.light_position_m(axes)
+    # Where each full-resolution pixel (photosite) lands on the sample, edge margin included.
+    on_full = pixel_geometry(
+        intr, cam_pos, light_pos, sample_size_m, margin_m=options.margin_m
+    ).on_sample
+    flux_all, var_all, sat_all = _merge_pose(
+        decoded, exposures, radiometry, darks, flat, on_sample=on_full
+    )
     names, fluxes, variances, sats, step, offsets, sites = _channels_of(
         flux_all, var_all, sat_all, decoded[0].channels, decoded[0].cfa_pattern
     )
-    axes = recs[0].axes_measured
-    cam_pos, light_pos = kin.camera_position_m(axes), kin.light_position_m(axes)
     k_rad = radiometry.radiance_per_electron_rate
     geos: dict[float, object] = {}
     sites_on = None
     if step > 1:
         # A superpixel is on the sample only if every photosite of it is: at grazing views one
         # photosite spans more than the edge margin, so the centroid's test is not enough.
-        full = pixel_geometry(
-            intr, cam_pos, light_pos, sample_size_m, margin_m=options.margin_m
-        ).on_sample
-        sites_on = _block_all(full, step)
+        sites_on = _block_all(on_full, step)
     for c, name in enumerate(names):
         b = options.bin_px
         offset, step_c = offsets[c], step

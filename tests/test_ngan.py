@@ -223,9 +223,12 @@ def test_nickel_sharp_metal_lobe_through_the_rig(tmp_path) -> None:
     truth = f_all[np.arange(len(idx)), idx]
     assert not np.any(table.flags & Flags.SATURATED)
     sel = table.f / table.sigma > 50
-    # Only the lobe reaches SNR 50 here (the diffuse floor, f ≈ 0.011 sr⁻¹, stays below it).
+    # The lobe is what reaches SNR 50 here: the diffuse floor alone (kd/π ≤ 0.011 sr⁻¹) stays
+    # below it, so every selected sample has a lobe contribution on top of its channel's floor,
+    # and the brightest point of the lobe is among them.
+    floor = np.array([0.0342, 0.0256, 0.014])[idx] / np.pi  # kd per channel, ngan_nickel.toml
     assert sel.sum() > 1000
-    assert truth[sel].min() > 0.1 and truth[sel].max() >= 0.95 * truth.max()
+    assert np.all(truth[sel] > floor[sel]) and truth[sel].max() >= 0.95 * truth.max()
     rel = np.abs(table.f[sel] / truth[sel] - 1.0)
     # As for the RGL materials: SNR > 50 ⇒ median |error| < 1.4% for honest noise; 3% bound.
     assert np.median(rel) <= 0.03, np.median(rel)
