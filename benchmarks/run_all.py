@@ -24,12 +24,16 @@ def main(argv: list[str]) -> int:
         spec = importlib.util.spec_from_file_location(name, path)
         module = importlib.util.module_from_spec(spec)
         t0 = time.perf_counter()
+        saved = sys.argv
+        sys.argv = [str(path)]  # each benchmark parses its own (default) options
         try:
             spec.loader.exec_module(module)
             module.main()
-        except Exception:
+        except (Exception, SystemExit):
             traceback.print_exc()
             failed += 1
+        finally:
+            sys.argv = saved
         print(f"({name}: {time.perf_counter() - t0:.1f} s wall)", flush=True)
     return 1 if failed else 0
 
