@@ -347,15 +347,35 @@ def models_cmd(
         from fitting.properties import property_table
 
         rows = property_table()
-        pt = Table(title="Measured properties")
-        keys = list(rows[0]) if rows else []
-        for k in keys:
-            pt.add_column(k)
+        pt = Table(title="Measured properties (quadrature and random direction pairs)")
+        for col in (
+            "model",
+            "options",
+            "reciprocal",
+            "energy ≤ 1",
+            "isotropic",
+            "finite",
+            "max albedo",
+            "max recip. err",
+        ):
+            pt.add_column(col)
         for r in rows:
+            opts = ",".join(f"{v}" for v in r["options"].values()) or "–"
             pt.add_row(
-                *(("yes" if v else "no") if isinstance(v, bool) else str(v) for v in r.values())
+                r["model"],
+                opts,
+                *(
+                    "yes" if r[k] else "NO"
+                    for k in ("reciprocal", "energy_conserving", "isotropic", "finite")
+                ),
+                f"{r['max_albedo']:.4f}",
+                f"{r['max_reciprocity_error']:.1e}",
             )
         out.print(pt)
+        out.print(
+            "energy ≤ 1: directional albedo ≤ 1 at every tested θo and parameter set; the "
+            "seed's Phong k_s(l̂·r̂)^n is reciprocal but not energy conserving."
+        )
 
 
 runs_app = typer.Typer(no_args_is_help=True, help="Run directories: list and inspect.")
