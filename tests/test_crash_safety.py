@@ -65,12 +65,15 @@ def test_kill_9_ten_times_then_complete(tmp_path: Path) -> None:
     seen = 0
     for _ in range(KILLS):
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        # Wait until this session is capturing (a new frame appears), then kill at a random
-        # moment within the next 0.4 s: mid-frame-write, mid-commit, mid-move alike.
+        # Wait until this session has captured a random few new frames, then kill at a random
+        # moment within the next 20 ms: mid-frame-write, mid-commit, mid-move alike. Counting
+        # frames rather than seconds keeps the test independent of the machine's speed (a fast
+        # idle machine would otherwise finish the plan before the tenth kill).
+        target = seen + int(rng.integers(1, 12))
         deadline = time.monotonic() + 60
-        while _frames(out) <= seen and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.01)
-        time.sleep(float(rng.uniform(0.0, 0.4)))
+        while _frames(out) < target and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.002)
+        time.sleep(float(rng.uniform(0.0, 0.02)))
         if proc.poll() is None:
             os.kill(proc.pid, signal.SIGKILL)
             killed += 1
