@@ -57,6 +57,10 @@ class ReduceOptions:
     mode: str = "mean"
     margin_m: float = 0.001  # stay this far inside the sample edge
     min_snr: float = 3.0  # below this a sample is flagged dark
+    # Scale the certified intensity by the light monitor's reading recorded with each capture
+    # (relative to the commanded level), so lamp drift during a long run does not become a
+    # drift of the BRDF. Without a monitor reading the certified value is used as is.
+    light_monitor: bool = True
 
 
 def _channels_of(flux, var, sat, channels: str, cfa_pattern: str | None):
@@ -185,7 +189,8 @@ def reduce_run(
                     radiometry,
                     intr,
                     kin,
-                    intensity,
+                    intensity
+                    * (_monitor_factor(good, rig.light.level) if options.light_monitor else 1.0),
                     sample_size_m,
                     options,
                     cols,
@@ -339,6 +344,20 @@ def _local_mean(flux: np.ndarray, valid: np.ndarray, *, cfa: bool) -> np.ndarray
         with np.errstate(invalid="ignore", divide="ignore"):
             out[sl] = np.where(cnt > 0.5, tot / np.maximum(cnt, 1e-12), np.nan)
     return out
+
+
+def _monitor_factor(recs, level: float) -> float:
+    """Mean monitor reading of a pose's captures divided by the commanded level (1 if the light
+    reported no reading). The monitor is a photodiode on the lamp: it tracks output drift."""
+    readings = []
+    for r in recs:
+        light = (r.devices or {}).get("light") or {}
+        value = light.get("measured")
+        if isinstance(value, int | float) and math.isfinite(value) and value > 0:
+            readings.append(float(value))
+    if not readings or level <= 0:
+        return 1.0
+    return float(np.mean(readings)) / level
 
 
 def _reduce_pose(

@@ -64,6 +64,14 @@ class EmulatedLight:
         self._buf = bytearray()
         self.lock = threading.Lock()
 
+    def true_level(self) -> float:
+        """The lamp's actual relative output (what the sample receives): commanded level with
+        the drift since switch-on, without the monitor's noise. 0 when off."""
+        if not self.is_on:
+            return 0.0
+        hours = (self.clock.now() - self._on_since) / 3600.0
+        return max(self.level * (1.0 + self.drift_per_hour * hours), 0.0)
+
     def measured(self) -> float:
         """Monitor reading (relative); the ground truth the simulated camera should use."""
         if not self.is_on:

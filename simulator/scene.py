@@ -169,6 +169,9 @@ class LightSpec(_Strict):
     )
     shape: Literal["disk", "rect"] = "disk"
     radius_m: float = Field(0.005, gt=0, description="area: disk radius or square half-side")
+    drift_per_hour: float = Field(
+        0.0, ge=-0.5, le=0.5, description="relative output change per hour since switch-on"
+    )
 
     @property
     def area_m2(self) -> float:

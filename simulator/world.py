@@ -48,7 +48,9 @@ class SimWorld:
         for ax in rig.axes:
             park = ax.park_deg if ax.park_deg is not None else max(ax.min_deg, 0.0)
             self.bus.add_servo(ax.id, ax.model, position_ticks=self._ticks(ax, math.radians(park)))
-        self.light = EmulatedLight(self.clock, name=rig.name, rng=rng)
+        self.light = EmulatedLight(
+            self.clock, name=rig.name, rng=rng, drift_per_hour=scene.light.drift_per_hour
+        )
         self._renderer = renderer
         self.camera: SimCamera | None = None
         if rig.clock == "sim":
@@ -89,7 +91,7 @@ class SimWorld:
                 self.scene,
                 clock,
                 self.positions_m,
-                self.light.measured,
+                self.light.true_level,
                 readout_s=rig.camera.readout_s,
                 renderer=self._renderer,
             )
