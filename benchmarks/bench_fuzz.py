@@ -22,9 +22,7 @@ Run: .venv/bin/python benchmarks/bench_fuzz.py [--packets 100000] [--light 20000
 from __future__ import annotations
 
 import argparse
-import contextlib
 import math
-import signal
 import time
 import traceback
 import uuid
@@ -35,41 +33,18 @@ import numpy as np
 from acquisition.clock import VirtualClock
 from acquisition.dynamixel import DynamixelBus, DynamixelCommError, DynamixelError, HardwareAlert
 from acquisition.light import LightError, SerialLight
-from simulator.dxl import EmulatedBus, Reply, register_bus, unregister_bus
+from simulator.dxl import EmulatedBus, register_bus, unregister_bus
 from simulator.dxl import protocol as P
+from simulator.dxl.fuzzing import Hang, MangledReplies, watchdog
 from simulator.light import EmulatedLight, register_light, unregister_light
 
 __all__ = ["main", "fuzz_emulator", "fuzz_driver", "fuzz_light"]
 
-HANG_S = 5.0
 INSTRUCTIONS = np.array(
     [1, 2, 3, 4, 5, 6, 8, 0x10, 0x55, 0x82, 0x83, 0x8A, 0x92, 0x93], dtype=np.int64
 )
 CLASSIFIED = (DynamixelCommError, DynamixelError, HardwareAlert)
 XM430 = 1020  # e-Manual: XM430-W350 model number, the PING reply of servo 1
-
-
-class Hang(BaseException):
-    pass
-
-
-@contextlib.contextmanager
-def watchdog(seconds: float = HANG_S):
-    def fire(signum, frame):
-        raise Hang(f"no return within {seconds} s")
-
-    # pytest-timeout arms the same timer (SIGALRM); hand it back with its time left.
-    old = signal.signal(signal.SIGALRM, fire)
-    t0 = time.monotonic()
-    outer_s, outer_interval = signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
-        if outer_s > 0:
-            left = max(outer_s - (time.monotonic() - t0), 1e-3)
-            signal.setitimer(signal.ITIMER_REAL, left, outer_interval)
 
 
 def _bytes(rng: np.random.Generator, n: int) -> bytes:
@@ -233,24 +208,6 @@ def mangle(rng: np.random.Generator, pkt: bytes) -> tuple[str, bytes]:
     if kind == "duplicate":
         return kind, pkt + pkt
     return kind, _bytes(rng, int(rng.integers(0, 31)))
-
-
-class MangledReplies:
-    """`dxlsim://` / `lightsim://` device: a real emulator whose replies `fn` rewrites."""
-
-    def __init__(self, device, fn) -> None:
-        self.device, self.fn = device, fn
-        self.count = 0
-        self.kinds: Counter[str] = Counter()
-
-    def handle(self, data: bytes) -> list[Reply]:
-        out = []
-        for r in self.device.handle(data):
-            kind, b = self.fn(r.data)
-            self.count += 1
-            self.kinds[kind] += 1
-            out.append(Reply(b))
-        return out
 
 
 DRIVER_OPS = (

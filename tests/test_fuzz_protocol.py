@@ -22,10 +22,7 @@ lands). Volume runs (>= 10^5 packets per side) live in benchmarks/bench_fuzz.py.
 
 from __future__ import annotations
 
-import contextlib
 import math
-import signal
-import time
 import uuid
 
 from dynamixel_sdk import PacketHandler
@@ -40,8 +37,9 @@ from acquisition.dynamixel import (
     HardwareAlert,
 )
 from acquisition.light import LightError, SerialLight
-from simulator.dxl import EmulatedBus, Reply, register_bus, unregister_bus
+from simulator.dxl import EmulatedBus, register_bus, unregister_bus
 from simulator.dxl import protocol as P
+from simulator.dxl.fuzzing import MangledReplies, watchdog
 from simulator.light import EmulatedLight, register_light, unregister_light
 
 SDK = PacketHandler(2.0)
@@ -68,7 +66,6 @@ CLASSIFIED = (DynamixelCommError, DynamixelError, HardwareAlert)
 # Per-input wall-clock budget. The slowest legitimate input is a driver call whose every
 # attempt times out: (retries + 1) x ~1 ms packet timeout here, plus the SDK's Python
 # overhead; 5 s is three orders of magnitude above that, so only a real hang trips it.
-HANG_S = 5.0
 
 FUZZ = settings(
     derandomize=True,
@@ -76,30 +73,6 @@ FUZZ = settings(
     database=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
-
-
-class Hang(BaseException):
-    """Raised by the watchdog; BaseException so no `except Exception` in the code under
-    test can swallow it."""
-
-
-@contextlib.contextmanager
-def watchdog(seconds: float = HANG_S):
-    def fire(signum, frame):
-        raise Hang(f"no return within {seconds} s")
-
-    # pytest-timeout arms the same timer (SIGALRM); hand it back with its time left.
-    old = signal.signal(signal.SIGALRM, fire)
-    t0 = time.monotonic()
-    outer_s, outer_interval = signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
-        if outer_s > 0:
-            left = max(outer_s - (time.monotonic() - t0), 1e-3)
-            signal.setitimer(signal.ITIMER_REAL, left, outer_interval)
 
 
 def sdk_packet(dxl_id: int, inst: int, params: bytes = b"") -> bytes:
@@ -321,21 +294,6 @@ def test_light_emulator_answers_every_line_in_ascii(lines) -> None:
 
 
 # ---- driver side ---------------------------------------------------------------------------
-
-
-class MangledReplies:
-    """A device for `dxlsim://` / `lightsim://`: a real emulator whose replies are rewritten
-    by a callback. Counts the replies that went through it."""
-
-    def __init__(self, bus: EmulatedBus, mangle) -> None:
-        self.bus, self.mangle, self.count = bus, mangle, 0
-
-    def handle(self, data: bytes) -> list[Reply]:
-        out = []
-        for r in self.bus.handle(data):
-            self.count += 1
-            out.append(Reply(self.mangle(r.data)))
-        return out
 
 
 MANGLE_KINDS = [
