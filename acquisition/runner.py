@@ -77,8 +77,19 @@ def _safe_stop(rig: Rig, store: RunStore, reason: str, park: bool = True) -> Non
         try:
             step()
         except Exception as exc:
-            store.event("safe-stop", f"{name} failed: {exc}")
-    store.event("stop", reason)
+            _record(store, "safe-stop", f"{name} failed: {exc}")
+    _record(store, "stop", reason)
+
+
+def _record(store: RunStore, kind: str, message: str) -> None:
+    """Record an event; a manifest that cannot be written (disk full) must not prevent the
+    hardware from being made safe, so the failure is reported on stderr instead."""
+    try:
+        store.event(kind, message)
+    except Exception as exc:  # sqlite3.OperationalError "database or disk is full", OSError
+        import sys
+
+        sys.stderr.write(f"warning: could not record {kind!r} in the manifest: {exc}\n")
 
 
 def run_acquisition(
@@ -159,6 +170,11 @@ def run_acquisition(
         reason = f"fault: {exc}"
     except KeyboardInterrupt:
         reason = "interrupted (KeyboardInterrupt)"
+    except OSError as exc:
+        # Disk full, quota, I/O error on the run directory: the frame being written is lost
+        # only if it never reached disk (its row stays pending and is re-captured on resume);
+        # every earlier frame is already safe. Stop the hardware rather than carry on blind.
+        reason = f"storage: {exc.strerror or exc}" + (f" ({exc.filename})" if exc.filename else "")
     finally:
         bar.close()
     lab_time_s = clock.now() - t0
@@ -172,7 +188,10 @@ def run_acquisition(
         if reason == "complete":
             reason = f"incomplete: {total_done}/{total} captures done"
         _safe_stop(rig, store, reason, park=park)
-        store.set_meta("lab_time_s", str(lab_time_s + float(store.meta("lab_time_s") or 0)))
+        try:
+            store.set_meta("lab_time_s", str(lab_time_s + float(store.meta("lab_time_s") or 0)))
+        except Exception as exc:  # disk full: lab time is bookkeeping, the frames are safe
+            _record(store, "warning", f"lab time not recorded: {exc}")
     return RunOutcome(complete, captured, adopted, total_done, reason, lab_time_s)
 
 

@@ -267,7 +267,7 @@ class RunStore:
         path = self.root / rel
         digest = hashlib.sha256(data).hexdigest()
         try:
-            atomic_write_bytes(path, data)
+            atomic_write_bytes(path, data, overwrite=False)
         except FileExistsError:
             # A frame from an interrupted attempt is already in place: keep it (it is data
             # that was captured), and store the new one beside it rather than overwrite.
