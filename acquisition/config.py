@@ -6,7 +6,9 @@ the allowed range, so the CLI can print it without a traceback.
 
 from __future__ import annotations
 
+import json
 import math
+import re
 import tomllib
 from pathlib import Path
 from typing import Literal
@@ -22,9 +24,12 @@ __all__ = [
     "GeometryConfig",
     "RigConfig",
     "PlanConfig",
+    "AutoExposureConfig",
     "load_rig",
     "load_plan",
     "format_validation_error",
+    "load_config_data",
+    "CONFIG_SUFFIXES",
 ]
 
 VELOCITY_LIMIT = {"XM430-W350": 200, "XL430-W250": 265}
@@ -159,6 +164,44 @@ class RigConfig(_Strict):
         raise KeyError(role)
 
 
+class AutoExposureConfig(_Strict):
+    """Auto-exposure per pose (`exposure_mode = "auto"`): bracket until the sample region has an
+    unsaturated frame and enough signal (decision logic: `acquisition.exposure`).
+
+    Levels are linear fractions of the camera's clip level (0 = black, 1 = clipped). Exposures
+    are taken on the ladder start_s·ratio^k within [min_s, max_s], so a finite set of master
+    darks covers every frame and repeated decisions are exactly reproducible.
+    """
+
+    start_s: float = Field(0.002, gt=0, le=60, description="first exposure of every pose")
+    min_s: float = Field(1e-4, gt=0, le=60, description="shortest exposure allowed")
+    max_s: float = Field(1.0, gt=0, le=60, description="longest exposure allowed")
+    ratio: float = Field(4.0, gt=1.0, le=64.0, description="ladder step between exposures")
+    target_signal: float = Field(
+        0.25, gt=0, lt=1, description="wanted level of the signal percentile (fraction of clip)"
+    )
+    signal_percentile: float = Field(
+        50.0, ge=0, le=100, description="which sample-region pixel must reach target_signal"
+    )
+    saturation_level: float = Field(
+        0.9, gt=0, le=1, description="a pixel at or above this level counts as saturated"
+    )
+    max_brackets: int = Field(4, ge=1, le=16, description="frames per pose at most")
+
+    @model_validator(mode="after")
+    def _order(self) -> AutoExposureConfig:
+        if not self.min_s <= self.start_s <= self.max_s:
+            raise ValueError(
+                f"need min_s ({self.min_s}) <= start_s ({self.start_s}) <= max_s ({self.max_s})"
+            )
+        if self.target_signal >= self.saturation_level:
+            raise ValueError(
+                f"target_signal ({self.target_signal}) must be below saturation_level "
+                f"({self.saturation_level})"
+            )
+        return self
+
+
 class PlanConfig(_Strict):
     """A sampling plan (angles in degrees; φ from +x toward +y).
 
@@ -173,10 +216,19 @@ class PlanConfig(_Strict):
       (ω_i, ω_o) by fitting.rusinkiewicz.from_half_diff; poses below the horizon or beyond the
       rig's reach are skipped with their reason.
     - `explicit`: the (θ_i, φ_i, θ_o, φ_o) list `poses_deg`.
+    - `adaptive`: two phases in one run — the coarse plan `prescan` (any other type), then
+      fine poses around each incidence's peak (`refine_span_deg`, `refine_step_deg`, see
+      `acquisition.plans.refine_around_peak`), decided from the pre-scan frames.
+
+    Exposure: `exposure_mode = "fixed"` takes every bracket of `exposures_s` at every pose;
+    `"auto"` brackets per pose as `auto_exposure` says (then `exposures_s` is unused).
+    An adaptive plan's exposure settings apply to both phases (the prescan's are ignored).
     """
 
     name: str = "plan"
-    type: Literal["isotropic", "explicit", "hemisphere", "inplane", "rusinkiewicz"] = "isotropic"
+    type: Literal["isotropic", "explicit", "hemisphere", "inplane", "rusinkiewicz", "adaptive"] = (
+        "isotropic"
+    )
     theta_i_deg: tuple[float, ...] = ()
     theta_o_deg: tuple[float, ...] = ()
     delta_phi_deg: tuple[float, ...] = (180.0,)
@@ -197,6 +249,11 @@ class PlanConfig(_Strict):
     skip_unreachable: bool = Field(
         True, description="drop grid poses the rig cannot reach (explicit poses always error)"
     )
+    exposure_mode: Literal["fixed", "auto"] = "fixed"
+    auto_exposure: AutoExposureConfig = Field(default_factory=AutoExposureConfig)
+    prescan: PlanConfig | None = Field(None, description="adaptive: the coarse phase-1 plan")
+    refine_span_deg: float = Field(10.0, gt=0, le=45, description="adaptive: patch half-width")
+    refine_step_deg: float = Field(2.5, gt=0, le=45, description="adaptive: fine spacing")
 
     @field_validator("theta_i_deg", "theta_o_deg", "theta_h_deg", "theta_d_deg")
     @classmethod
@@ -237,6 +294,16 @@ class PlanConfig(_Strict):
             self.theta_h_deg and self.theta_d_deg and self.phi_d_deg
         ):
             raise ValueError("a rusinkiewicz plan needs theta_h_deg, theta_d_deg and phi_d_deg")
+        if self.type == "adaptive":
+            if self.prescan is None:
+                raise ValueError("an adaptive plan needs a [prescan] plan")
+            if self.prescan.type == "adaptive":
+                raise ValueError("an adaptive plan's prescan cannot itself be adaptive")
+            if self.refine_step_deg > self.refine_span_deg:
+                raise ValueError(
+                    f"refine_step_deg ({self.refine_step_deg}) must not exceed "
+                    f"refine_span_deg ({self.refine_span_deg})"
+                )
         if self.type == "explicit" and not self.poses_deg:
             raise ValueError("an explicit plan needs poses_deg")
         for pose in self.poses_deg:
@@ -248,45 +315,158 @@ class PlanConfig(_Strict):
         return self
 
 
-def format_validation_error(path: Path | str, err: ValidationError) -> str:
-    """First pydantic error as one line: `file: key.path: message (got value)`."""
+# Units live in key names (`distance_m`, `exposure_s`, `min_deg`), never in values: a value
+# is a plain number in the key's unit. These suffixes name the unit, longest first.
+_UNIT_SUFFIXES = (
+    ("_W_sr", "W/sr"),
+    ("_deg", "deg"),
+    ("_rad", "rad"),
+    ("_mm", "mm"),
+    ("_cm", "cm"),
+    ("_um", "µm"),
+    ("_ms", "ms"),
+    ("_us", "µs"),
+    ("_m", "m"),
+    ("_s", "s"),
+)
+_SI_SUFFIX = {"_rad": "_deg", "_mm": "_m", "_cm": "_m", "_um": "_m", "_ms": "_s", "_us": "_s"}
+_NUMBER_WITH_UNIT = re.compile(r"^\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*([^\d\s].*?)\s*$")
+_RANGE_TYPES = ("greater_than", "greater_than_equal", "less_than", "less_than_equal")
+
+
+def _unit_of(key: str) -> tuple[str, str] | None:
+    """(suffix, unit name) of a unit-carrying key, e.g. "min_deg" → ("_deg", "deg")."""
+    for suffix, unit in _UNIT_SUFFIXES:
+        if key.endswith(suffix) and len(key) > len(suffix):
+            return suffix, unit
+    return None
+
+
+def _fields_at(model: type[BaseModel] | None, loc: tuple) -> set[str] | None:
+    """Field names of the (nested) model that holds the last key of `loc`, if known."""
+    for part in loc[:-1]:
+        if model is None:
+            return None
+        if isinstance(part, int):
+            continue
+        info = model.model_fields.get(str(part))
+        model = _submodel(info.annotation) if info is not None else None
+    return set(model.model_fields) if model is not None else None
+
+
+def _submodel(annotation: object) -> type[BaseModel] | None:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in getattr(annotation, "__args__", ()):
+        found = _submodel(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def _unit_hint(e: dict, loc: tuple, model: type[BaseModel] | None) -> str | None:
+    """A one-line explanation when the mistake is about units, else None."""
+    keys = [p for p in loc if isinstance(p, str)]
+    if not keys:
+        return None
+    key = keys[-1]
+    unit = _unit_of(key)
+    got = e.get("input")
+    if e["type"] == "extra_forbidden" and unit is not None and unit[0] in _SI_SUFFIX:
+        want = key[: -len(unit[0])] + _SI_SUFFIX[unit[0]]
+        fields = _fields_at(model, loc)
+        if fields is None or want in fields:
+            return (
+                f"unknown key; gonio configs use SI units and degrees: write {want} "
+                f"(in {dict(_UNIT_SUFFIXES)[_SI_SUFFIX[unit[0]]]}) instead of {key}"
+            )
+    if unit is not None and e["type"] in ("tuple_type", "list_type"):
+        return f"{key} is a list of numbers in {unit[1]}, e.g. [30.0] (got {got!r})"
+    if unit is not None and isinstance(got, str):
+        m = _NUMBER_WITH_UNIT.match(got)
+        if m:
+            return (
+                f"{key} is in {unit[1]} (the unit is in the key name); write a plain number "
+                f"in {unit[1]}, without a unit string (got {got!r})"
+            )
+        return f"{key} is a number in {unit[1]}; write it without quotes (got {got!r})"
+    if unit is not None and e["type"] in _RANGE_TYPES:
+        return f"{e['msg']}; {key} is in {unit[1]} (got {got!r})"
+    return None
+
+
+def format_validation_error(
+    path: Path | str, err: ValidationError, model: type[BaseModel] | None = None
+) -> str:
+    """First pydantic error as one line: `file: key.path: message (got value)`.
+
+    `model` (the validated class) lets an unknown key like `distance_mm` be answered with the
+    real key (`distance_m`) when it exists.
+    """
     e = err.errors()[0]
-    loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
-    msg = e["msg"]
+    loc = tuple(e["loc"])
+    where = ".".join(str(p) for p in loc)
+    msg = e["msg"].removeprefix("Value error, ").removeprefix("Assertion failed, ")
+    hint = _unit_hint(e, loc, model)
+    if hint is not None:
+        return f"{path}: {where}: {hint}"
     if e["type"] == "extra_forbidden":
         msg = "unknown key (check the spelling; see the commented example configs in configs/)"
     elif e["type"] == "missing":
         msg = "required key is missing"
     got = e.get("input")
     tail = (
-        f" (got {got!r})" if e["type"] not in ("missing", "extra_forbidden") and _short(got) else ""
+        f" (got {got!r})"
+        if e["type"] not in ("missing", "extra_forbidden") and loc and _short(got)
+        else ""
     )
-    return f"{path}: {loc}: {msg}{tail}"
+    if not loc:  # a whole-file check (duplicate ids, missing roles): its message names the key
+        return f"{path}: {msg}{tail}"
+    return f"{path}: {where}: {msg}{tail}"
 
 
 def _short(v: object) -> bool:
     return not isinstance(v, dict | list | tuple) or len(repr(v)) < 60
 
 
-def _load_toml(path: Path | str) -> dict:
+CONFIG_SUFFIXES = (".toml", ".json")
+
+
+def load_config_data(path: Path | str) -> dict:
+    """Parse a config file. Configs are data: TOML (or JSON), never code, so other formats
+    (YAML can construct objects, Python would run) are refused by suffix."""
     path = Path(path)
     if not path.exists():
         raise ConfigError(f"{path}: no such file")
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a directory; give a .toml config file")
+    if path.suffix.lower() not in CONFIG_SUFFIXES:
+        raise ConfigError(
+            f"{path}: configs must be TOML (.toml) or JSON (.json) files, not "
+            f"{path.suffix or 'files without a suffix'!r}; convert it to TOML"
+        )
     try:
         with open(path, "rb") as fh:
+            if path.suffix.lower() == ".json":
+                data = json.load(fh)
+                if not isinstance(data, dict):
+                    raise ConfigError(f"{path}: a JSON config must be an object {{...}}")
+                return data
             return tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read ({exc})") from None
 
 
 def load_rig(path: Path | str) -> RigConfig:
-    data = _load_toml(path)
+    data = load_config_data(path)
     try:
         rig = RigConfig.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(format_validation_error(path, err)) from None
+        raise ConfigError(format_validation_error(path, err, RigConfig)) from None
     if rig.scene is not None:
         # Scene paths are relative to the rig file, so configs can be moved together.
         scene = Path(rig.scene)
@@ -297,8 +477,8 @@ def load_rig(path: Path | str) -> RigConfig:
 
 
 def load_plan(path: Path | str) -> PlanConfig:
-    data = _load_toml(path)
+    data = load_config_data(path)
     try:
         return PlanConfig.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(format_validation_error(path, err)) from None
+        raise ConfigError(format_validation_error(path, err, PlanConfig)) from None

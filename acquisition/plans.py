@@ -15,7 +15,13 @@ from acquisition.motion import move_time_s
 __all__ = [
     "PlannedPose",
     "Plan",
+    "LabTimeEstimate",
     "build_plan",
+    "brackets_bound",
+    "prescan_config",
+    "refine_config",
+    "build_refine_plan",
+    "lab_time_estimate",
     "expand_grid",
     "order_poses",
     "park_targets",
@@ -38,12 +44,30 @@ class Plan:
     skipped: list[tuple[tuple[float, float, float, float], str]]  # (pose deg, reason)
     move_time_s: float
     raster_move_time_s: float
-    exposure_time_s: float
+    exposure_time_s: float  # all poses; an upper bound under auto-exposure
+    # For an adaptive plan (phase 1 = this plan): the adaptive config, so the runner goes on to
+    # phase 2 once the pre-scan is complete.
+    adaptive: PlanConfig | None = None
 
     def lab_time_s(self, readout_s: float, settle_s: float) -> float:
+        """Moves + exposures + settling + readout. Exact for fixed brackets (up to the motion
+        model); an upper bound under auto-exposure (every pose takes `max_brackets` frames
+        at the longest rungs)."""
         n = len(self.poses)
-        per_pose = settle_s + len(self.config.exposures_s) * readout_s
+        per_pose = settle_s + brackets_bound(self.config)[0] * readout_s
         return self.move_time_s + self.exposure_time_s + n * per_pose
+
+
+def brackets_bound(cfg: PlanConfig) -> tuple[int, float]:
+    """(frames per pose, exposure seconds per pose): exact for fixed brackets; for auto-exposure
+    the bound `max_brackets` frames at the longest rungs of the ladder."""
+    if cfg.exposure_mode == "fixed":
+        return len(cfg.exposures_s), float(sum(cfg.exposures_s))
+    from acquisition.exposure import exposure_ladder
+
+    ae = cfg.auto_exposure
+    ladder = exposure_ladder(ae)
+    return ae.max_brackets, float(sum(sorted(ladder)[-ae.max_brackets :]))
 
 
 Deg4 = tuple[float, float, float, float]
@@ -213,7 +237,12 @@ def build_plan(rig: RigConfig, cfg: PlanConfig, start_rad: dict[str, float] | No
 
     Grid poses the rig cannot take are skipped with their reason (when `skip_unreachable`);
     an unreachable explicit pose is an error, since the user asked for it by name.
+    An adaptive plan builds its phase 1 (`prescan_config`); phase 2 is `build_refine_plan`.
     """
+    if cfg.type == "adaptive":
+        plan = build_plan(rig, prescan_config(cfg), start_rad)
+        plan.adaptive = cfg
+        return plan
     kin = Kinematics(rig)
     poses: list[PlannedPose] = []
     skipped = []
@@ -241,7 +270,7 @@ def build_plan(rig: RigConfig, cfg: PlanConfig, start_rad: dict[str, float] | No
         poses = [poses[i] for i in order]
         vectors = vectors[order]
     moves = tour_time_s(rig, vectors, start)
-    exposure = len(poses) * float(sum(cfg.exposures_s))
+    exposure = len(poses) * brackets_bound(cfg)[1]
     return Plan(cfg, poses, skipped, moves, raster, exposure)
 
 
@@ -318,3 +347,129 @@ def refine_around_peak(
     return PlanConfig(
         name=name, type="explicit", poses_deg=tuple(poses), exposures_s=exposures_s or (0.002,)
     )
+
+
+# -- adaptive plans (two phases in one run) ---------------------------------------------------
+
+_EXPOSURE_FIELDS = ("exposures_s", "exposure_mode", "auto_exposure")
+
+
+def prescan_config(cfg: PlanConfig) -> PlanConfig:
+    """Phase 1 of an adaptive plan: its `prescan`, with the adaptive plan's exposure settings."""
+    if cfg.type != "adaptive" or cfg.prescan is None:
+        raise ValueError(f"plan {cfg.name!r} is not adaptive")
+    return cfg.prescan.model_copy(update={f: getattr(cfg, f) for f in _EXPOSURE_FIELDS})
+
+
+def refine_config(rig: RigConfig, cfg: PlanConfig, prescan_signal: dict[Deg4, float]) -> PlanConfig:
+    """Phase 2 of an adaptive plan: `refine_around_peak` on the pre-scan signal, as an explicit
+    plan carrying the adaptive plan's exposure settings. Deterministic in its inputs."""
+    fine = refine_around_peak(
+        rig,
+        prescan_signal,
+        span_deg=cfg.refine_span_deg,
+        step_deg=cfg.refine_step_deg,
+        name=f"{cfg.name}-refine",
+    )
+    return fine.model_copy(update={f: getattr(cfg, f) for f in _EXPOSURE_FIELDS})
+
+
+def build_refine_plan(
+    rig: RigConfig, refine_cfg: PlanConfig, index_offset: int, start_rad: dict[str, float] | None
+) -> Plan:
+    """The phase-2 plan, its pose indices shifted by `index_offset` (the number of phase-1
+    poses) so that both phases share one manifest without colliding.
+
+    Order: nearest neighbour + 2-opt from where phase 1 ended — unless the patches visited one
+    after the other (each in its own order from the park pose, as `lab_time_estimate` bounds
+    them) is quicker; that fallback keeps the phase-2 time within the announced bound.
+    """
+    plan = build_plan(rig, refine_cfg, start_rad)
+    roles = _roles(rig)
+    start = (
+        np.array([_park(rig, r) for r in roles]) if start_rad is None else _vector(start_rad, roles)
+    )
+    patches: dict[tuple[float, float], list[Deg4]] = {}
+    for deg in refine_cfg.poses_deg:
+        patches.setdefault((deg[0], deg[1]), []).append(deg)
+    if len(patches) > 1:
+        by_deg = {tuple(round(a, 6) for a in deg): i for i, deg in enumerate(refine_cfg.poses_deg)}
+        concat: list[PlannedPose] = []
+        for rows in patches.values():
+            sub = build_plan(rig, refine_cfg.model_copy(update={"poses_deg": tuple(rows)}))
+            for q in sub.poses:
+                concat.append(PlannedPose(by_deg[_deg_key(q)], q.pose, q.targets))
+        vec = np.array([_vector(q.targets, roles) for q in concat])
+        t_concat = tour_time_s(rig, vec, start)
+        if t_concat < plan.move_time_s:
+            plan.poses, plan.move_time_s = concat, t_concat
+    plan.poses = [PlannedPose(p.index + index_offset, p.pose, p.targets) for p in plan.poses]
+    return plan
+
+
+@dataclass(frozen=True)
+class LabTimeEstimate:
+    """Lab time before the run (s). `phase2_max_s` is 0 for a one-phase plan. Under
+    auto-exposure every figure is an upper bound (see `Plan.lab_time_s`)."""
+
+    phase1_s: float
+    phase2_max_s: float
+    refine_max_poses: int
+
+    @property
+    def total_max_s(self) -> float:
+        return self.phase1_s + self.phase2_max_s
+
+
+def _max_leg_s(rig: RigConfig) -> float:
+    """Longest single move the rig can make: every axis across its whole range."""
+    roles = _roles(rig)
+    axes = {r: rig.axis(r) for r in roles}
+    lo = np.radians([axes[r].min_deg for r in roles])
+    hi = np.radians([axes[r].max_deg for r in roles])
+    return float(move_time_s(axes, lo, hi))
+
+
+def lab_time_estimate(rig: RigConfig, cfg: PlanConfig) -> LabTimeEstimate:
+    """Phase-1 lab time, and for an adaptive plan an upper bound on phase 2.
+
+    Phase 2 depends on where the peaks are, which is unknown before the run. Bound: for every
+    incidence, the largest refine patch any pre-scan pose of that incidence could produce as
+    its peak, at the cost of that patch's own ordered tour; plus, per incidence, one move of
+    every axis across its full range (into and out of the patch). The runner keeps the
+    phase-2 tour within this bound (`order_within_bound`).
+    """
+    readout, settle = rig.camera.readout_s, rig.settle_s
+    plan1 = build_plan(rig, cfg)
+    phase1 = plan1.lab_time_s(readout, settle)
+    if cfg.type != "adaptive":
+        return LabTimeEstimate(phase1, 0.0, 0)
+    by_incidence: dict[tuple[float, float], list[Deg4]] = {}
+    for p in plan1.poses:
+        d = _deg_key(p)
+        by_incidence.setdefault((d[0], d[1]), []).append(d)
+    leg = _max_leg_s(rig)
+    bound, n_max = 0.0, 0
+    refine_cfg_base = cfg
+    for rows in by_incidence.values():
+        worst_s, worst_n = 0.0, 0
+        for peak in rows:
+            signal = {d: (1.0 if d == peak else 0.0) for d in rows}
+            try:
+                fine = refine_config(rig, refine_cfg_base, signal)
+            except Unreachable:
+                continue
+            plan2 = build_plan(rig, fine)
+            t = plan2.lab_time_s(readout, settle)
+            if t > worst_s:
+                worst_s = t
+            worst_n = max(worst_n, len(plan2.poses))
+        if worst_n:
+            bound += worst_s + leg
+            n_max += worst_n
+    return LabTimeEstimate(phase1, bound, n_max)
+
+
+def _deg_key(p: PlannedPose) -> Deg4:
+    """A planned pose in degrees, rounded so that float noise does not split incidences."""
+    return tuple(round(a, 6) for a in p.pose.deg())  # type: ignore[return-value]

@@ -4,7 +4,7 @@ only against these, so the same run executes on a real rig or on the simulated o
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
@@ -14,6 +14,7 @@ __all__ = [
     "LightStatus",
     "Camera",
     "Frame",
+    "FrameLevels",
     "DeviceFault",
     "AxisTimeout",
 ]
@@ -74,11 +75,24 @@ class LightSource(Protocol):
 @dataclass
 class Frame:
     """What a camera produced, untouched: the file bytes and their suffix (".dng", ".exr",
-    ".nef", ...), plus metadata the camera reported (exposure_s, gain, temperature...)."""
+    ".nef", ...), plus metadata the camera reported (exposure_s, gain, temperature...).
+
+    `levels` is optional: a camera that already holds its pixels may attach them as linear
+    levels (0 = black, 1 = clip level), any shape, for auto-exposure; it is never stored
+    (the file bytes are the record). Without it the runner asks a `FrameLevels` decoder.
+    """
 
     data: bytes
     suffix: str
     metadata: dict[str, Any] = field(default_factory=dict)
+    levels: Any = None
+
+
+# Linear levels (0 = black, 1 = the camera's clip level) of the *sample-region* pixels of a
+# frame, given the measured axis angles (rad) at capture. Injected by the layer above
+# (gonio.pipeline decodes with calibration.decode and projects the sample with the rig
+# geometry), because acquisition may not import calibration.
+FrameLevels = Callable[[Frame, dict[str, float]], Any]
 
 
 @runtime_checkable

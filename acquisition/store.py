@@ -7,6 +7,11 @@ Invariants:
   written. A crash between "frame in place" and "row done" leaves a pending row whose frame
   exists: resume verifies and adopts it, so no captured frame is ever lost.
 - A run directory is never overwritten: opening a complete run for writing is refused.
+- Opening a run to read it never changes it: no schema is created, the journal mode is left
+  alone, and a run written by a newer gonio (manifest `meta.schema_version` or run.toml
+  `schema_version` above `SCHEMA_VERSION`) is refused before anything else is touched.
+- A manifest is data, not trusted code: every frame path it lists must stay inside the run
+  directory (relative, no `..`, not through a symlink that leaves it), or the run is refused.
 """
 
 from __future__ import annotations
@@ -14,9 +19,11 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
+import re
 import sqlite3
 import tomllib
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,6 +45,20 @@ SCHEMA_VERSION = 1
 
 class RunStoreError(RuntimeError):
     """A run directory cannot be used as asked. One-line message."""
+
+
+def _newer(what: str, version: object) -> str:
+    return (
+        f"{what}: schema version {version} was written by a newer gonio (this one reads up to "
+        f"{SCHEMA_VERSION}); upgrade gonio to read this run"
+    )
+
+
+def _unreadable(db: Path, exc: Exception) -> str:
+    return (
+        f"{db}: unreadable, damaged or not an SQLite manifest ({exc}); restore it from a "
+        "backup (frames/ is untouched)"
+    )
 
 
 def now_iso() -> str:
@@ -124,10 +145,14 @@ class RunStore:
         root = Path(root)
         if root.exists() and any(root.iterdir()):
             raise RunStoreError(f"{root}: exists and is not empty; choose a new directory")
+        if not re.search(r"^schema_version\s*=", run_toml, flags=re.MULTILINE):
+            # Top-level keys must precede the first [table]: prepend, so readers can refuse a
+            # run.toml from a newer gonio before interpreting anything else in it.
+            run_toml = f"schema_version = {SCHEMA_VERSION}\n" + run_toml
         root.mkdir(parents=True, exist_ok=True)
         (root / "frames").mkdir()
         atomic_write_bytes(root / "run.toml", run_toml.encode())
-        store = cls._connect(root)
+        store = cls._connect(root, create=True)
         with store._db:
             store._db.executemany(
                 "INSERT INTO meta VALUES (?, ?)",
@@ -143,39 +168,85 @@ class RunStore:
     def open(cls, root: Path | str, *, writable: bool = False) -> RunStore:
         root = Path(root)
         if not (root / "manifest.sqlite").exists() or not (root / "run.toml").exists():
-            raise RunStoreError(f"{root}: not a run directory (no run.toml + manifest.sqlite)")
-        store = cls._connect(root)
-        version = store.meta("schema_version")
-        if version is None or not version.isdigit():
-            raise RunStoreError(f"{root}/manifest.sqlite: no schema version; not a gonio run")
-        if int(version) > SCHEMA_VERSION:
             raise RunStoreError(
-                f"{root}: run schema version {version} is newer than this gonio supports "
-                f"({SCHEMA_VERSION}); upgrade gonio"
+                f"{root}: not a run directory (no run.toml + manifest.sqlite); give a run "
+                "directory (see `gonio runs list`)"
             )
-        if writable and store.complete:
-            raise RunStoreError(f"{root}: run is complete; refusing to modify it")
+        if not (root / "manifest.sqlite").is_file():
+            raise RunStoreError(f"{root}/manifest.sqlite: not a file; not a gonio run")
+        store = cls._connect(root, create=False, writable=writable)
+        try:
+            version = store.meta("schema_version")
+            if version is None or not version.isdigit():
+                raise RunStoreError(f"{root}/manifest.sqlite: no schema version; not a gonio run")
+            if int(version) > SCHEMA_VERSION:
+                raise RunStoreError(_newer(f"{root}/manifest.sqlite", version))
+            if writable and store.complete:
+                raise RunStoreError(f"{root}: run is complete; refusing to modify it")
+        except BaseException:
+            store.close()
+            raise
         return store
 
     @classmethod
-    def _connect(cls, root: Path) -> RunStore:
+    def _connect(cls, root: Path, *, create: bool, writable: bool = True) -> RunStore:
+        db = root / "manifest.sqlite"
         try:
-            conn = sqlite3.connect(root / "manifest.sqlite", timeout=30, isolation_level=None)
-            conn.execute("PRAGMA journal_mode=WAL")
-            # FULL: a committed 'done' row survives power loss, matching the fsync'd frame.
-            conn.execute("PRAGMA synchronous=FULL")
-            conn.executescript(_SCHEMA)
-        except sqlite3.DatabaseError as exc:
-            raise RunStoreError(f"{root}/manifest.sqlite: unreadable ({exc})") from None
+            conn = sqlite3.connect(db, timeout=30, isolation_level=None)
+        except sqlite3.Error as exc:
+            raise RunStoreError(f"{db}: cannot open ({exc})") from None
+        try:
+            if create or writable:
+                conn.execute("PRAGMA journal_mode=WAL")
+                # FULL: a committed 'done' row survives power loss, matching the fsync'd frame.
+                conn.execute("PRAGMA synchronous=FULL")
+            if create:
+                conn.executescript(_SCHEMA)
+            else:
+                # A reader must not create tables in someone else's file: check instead.
+                names = {r[0] for r in conn.execute("SELECT name FROM sqlite_master")}
+                missing = {"meta", "captures", "events"} - names
+                if missing:
+                    raise RunStoreError(
+                        f"{db}: not a gonio manifest (no table {sorted(missing)[0]!r})"
+                    )
+        except sqlite3.Error as exc:
+            conn.close()
+            raise RunStoreError(_unreadable(db, exc)) from None
         conn.isolation_level = "DEFERRED"
         return cls(root, conn)
+
+    @contextmanager
+    def _reading(self):
+        """Translate SQLite failures (a damaged or truncated manifest) into one-line errors."""
+        try:
+            yield
+        except sqlite3.DatabaseError as exc:
+            raise RunStoreError(_unreadable(self.root / "manifest.sqlite", exc)) from None
+
+    def _rel_path(self, rel: str, capture_id: int) -> Path:
+        """`rel` as a path inside the run directory; anything else means a tampered manifest."""
+        p = Path(rel)
+        where = f"{self.root}/manifest.sqlite: capture {capture_id} frame_path {rel!r}"
+        if p.is_absolute() or ".." in p.parts or not p.parts:
+            raise RunStoreError(
+                f"{where} is not a path inside the run directory; refusing to read this run "
+                "(the manifest was edited or damaged)"
+            )
+        full = self.root / p
+        if not full.resolve().is_relative_to(self.root.resolve()):
+            raise RunStoreError(
+                f"{where} resolves outside the run directory (symlink); refusing to read it"
+            )
+        return full
 
     def close(self) -> None:
         self._db.close()
 
     # -- meta --------------------------------------------------------------------------------
     def meta(self, key: str) -> str | None:
-        row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        with self._reading():
+            row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
         return None if row is None else row[0]
 
     def set_meta(self, key: str, value: str) -> None:
@@ -191,8 +262,26 @@ class RunStore:
         self.set_meta("completed_at", now_iso())
 
     def run_config(self) -> dict[str, Any]:
-        with open(self.root / "run.toml", "rb") as fh:
-            return tomllib.load(fh)
+        """The frozen configs of run.toml; refused when written by a newer gonio."""
+        path = self.root / "run.toml"
+        try:
+            with open(path, "rb") as fh:
+                doc = tomllib.load(fh)
+        except tomllib.TOMLDecodeError as exc:
+            raise RunStoreError(
+                f"{path}: damaged, not valid TOML ({exc}); restore it from a backup"
+            ) from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise RunStoreError(f"{path}: cannot read ({exc})") from None
+        version = doc.get("schema_version", doc.get("gonio", {}).get("schema_version"))
+        if version is not None:
+            if not isinstance(version, int) or isinstance(version, bool):
+                raise RunStoreError(
+                    f"{path}: schema_version: expected an integer (got {version!r})"
+                )
+            if version > SCHEMA_VERSION:
+                raise RunStoreError(_newer(str(path), version))
+        return doc
 
     def event(self, kind: str, message: str) -> None:
         with self._db:
@@ -202,13 +291,15 @@ class RunStore:
             )
 
     def events(self) -> list[tuple[str, str, str]]:
-        return list(self._db.execute("SELECT at, kind, message FROM events ORDER BY id"))
+        with self._reading():
+            return list(self._db.execute("SELECT at, kind, message FROM events ORDER BY id"))
 
     # -- captures ----------------------------------------------------------------------------
     def done_keys(self) -> set[tuple[int, int]]:
-        rows = self._db.execute(
-            "SELECT pose_index, bracket_index FROM captures WHERE status = 'done'"
-        )
+        with self._reading():
+            rows = self._db.execute(
+                "SELECT pose_index, bracket_index FROM captures WHERE status = 'done'"
+            ).fetchall()
         return {(int(a), int(b)) for a, b in rows}
 
     def frame_name(self, pose_index: int, bracket_index: int, suffix: str) -> str:
@@ -264,7 +355,7 @@ class RunStore:
         (rel,) = self._db.execute(
             "SELECT frame_path FROM captures WHERE id = ?", (capture_id,)
         ).fetchone()
-        path = self.root / rel
+        path = self._rel_path(rel, capture_id)
         digest = hashlib.sha256(data).hexdigest()
         try:
             atomic_write_bytes(path, data, overwrite=False)
@@ -288,12 +379,13 @@ class RunStore:
     def adopt_orphans(self) -> int:
         """Pending rows whose frame made it to disk are adopted (marked done with the
         checksum of the file on disk). Returns how many were adopted."""
-        rows = list(
-            self._db.execute("SELECT id, frame_path FROM captures WHERE status = 'pending'")
-        )
+        with self._reading():
+            rows = list(
+                self._db.execute("SELECT id, frame_path FROM captures WHERE status = 'pending'")
+            )
         adopted = 0
         for cid, rel in rows:
-            path = self.root / rel
+            path = self._rel_path(rel, cid)
             if path.exists():
                 with self._db:
                     self._db.execute(
@@ -314,37 +406,55 @@ class RunStore:
         if status is not None:
             q += " WHERE status = ?"
             args = (status,)
-        for r in self._db.execute(q + " ORDER BY pose_index, bracket_index", args).fetchall():
-            yield CaptureRecord(
-                id=r[0],
-                pose_index=r[1],
-                bracket_index=r[2],
-                exposure_s=r[3],
-                theta_i=r[4],
-                phi_i=r[5],
-                theta_o=r[6],
-                phi_o=r[7],
-                axes_commanded=json.loads(r[8]),
-                axes_measured=json.loads(r[9]),
-                frame_path=r[10],
-                sha256=r[11],
-                status=r[12],
-                devices=json.loads(r[13] or "{}"),
-                frame_meta=json.loads(r[14] or "{}"),
-                lab_time_s=r[15],
-            )
+        with self._reading():
+            rows = self._db.execute(q + " ORDER BY pose_index, bracket_index", args).fetchall()
+        records = []
+        # Every row is checked before the first is handed out, so a consumer never acts on
+        # part of a tampered manifest.
+        for r in rows:
+            self._rel_path(r[10], r[0])
+            try:
+                records.append(self._record(r))
+            except (TypeError, ValueError) as exc:  # a damaged JSON column
+                raise RunStoreError(
+                    f"{self.root}/manifest.sqlite: capture {r[0]} is damaged ({exc}); "
+                    "restore the manifest from a backup"
+                ) from None
+        yield from records
+
+    @staticmethod
+    def _record(r: tuple) -> CaptureRecord:
+        return CaptureRecord(
+            id=r[0],
+            pose_index=r[1],
+            bracket_index=r[2],
+            exposure_s=r[3],
+            theta_i=r[4],
+            phi_i=r[5],
+            theta_o=r[6],
+            phi_o=r[7],
+            axes_commanded=json.loads(r[8]),
+            axes_measured=json.loads(r[9]),
+            frame_path=r[10],
+            sha256=r[11],
+            status=r[12],
+            devices=json.loads(r[13] or "{}"),
+            frame_meta=json.loads(r[14] or "{}"),
+            lab_time_s=r[15],
+        )
 
     def count(self, status: str = "done") -> int:
-        (n,) = self._db.execute(
-            "SELECT COUNT(*) FROM captures WHERE status = ?", (status,)
-        ).fetchone()
+        with self._reading():
+            (n,) = self._db.execute(
+                "SELECT COUNT(*) FROM captures WHERE status = ?", (status,)
+            ).fetchone()
         return int(n)
 
     def verify(self) -> list[str]:
         """Check every done frame against its SHA-256; return a list of problems."""
         problems = []
         for rec in self.captures("done"):
-            path = self.root / rec.frame_path
+            path = self.root / rec.frame_path  # checked to be inside the run by captures()
             if not path.exists():
                 problems.append(f"{rec.frame_path}: missing")
             elif sha256_file(path) != rec.sha256:

@@ -14,11 +14,20 @@ Exposure time: from the gonio JSON metadata (DNG ImageDescription / EXR ``gonio`
 present (exact), else LibRaw's EXIF shutter speed (float32), else NaN.
 
 Every failure raises ``FrameError`` (a ``ValueError``) with a one-line message naming the file.
+What the C libraries print on the process's stderr while reading a file (OpenEXR's "corrupt
+chunk leader", LibRaw's I/O complaints, tifffile's log) is collected instead: it becomes the
+reason in that one line when the read fails, and is passed on unchanged when it succeeds.
 """
 
 from __future__ import annotations
 
 import json
+import logging
+import os
+import sys
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -93,6 +102,49 @@ def demosaic_to_rgb(mosaic: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
     return np.stack([sites["R"][0], 0.5 * (sites["G"][0] + sites["G"][1]), sites["B"][0]], axis=-1)
 
 
+@contextmanager
+def _native_stderr(collected: list[str]) -> Iterator[None]:
+    """Redirect file descriptor 2 (where C libraries write) to a temp file for the duration;
+    its text is appended to ``collected``. Without a usable fd 2 nothing is redirected."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield
+        return
+    quiet = logging.getLogger("tifffile")
+    was_disabled, quiet.disabled = quiet.disabled, True
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield
+        finally:
+            try:
+                sys.stderr.flush()
+            except (OSError, ValueError):
+                pass
+            os.dup2(saved, 2)
+            os.close(saved)
+            quiet.disabled = was_disabled
+            tmp.seek(0)
+            collected.append(tmp.read().decode("utf-8", "replace"))
+
+
+def _first_line(collected: list[str]) -> str:
+    for text in collected:
+        for line in text.splitlines():
+            if line.strip():
+                return line.strip()
+    return ""
+
+
+def _pass_on(collected: list[str]) -> None:
+    """A successful read keeps whatever the library said (it may be a real warning)."""
+    text = "".join(collected)
+    if text:
+        sys.stderr.write(text)
+
+
 def decode_frame(path) -> DecodedFrame:
     """Decode a RAW (DNG, NEF, ...) or EXR file. Raises ``FrameError`` with a one-line message."""
     p = Path(path)
@@ -108,6 +160,18 @@ def decode_frame(path) -> DecodedFrame:
     )
 
 
+@contextmanager
+def _tifffile_quiet() -> Iterator[None]:
+    """tifffile logs a warning for a file that is not TIFF; here that is a question we ask,
+    and the answer goes into the FrameError (or LibRaw's), not onto the terminal."""
+    log = logging.getLogger("tifffile")
+    was, log.disabled = log.disabled, True
+    try:
+        yield
+    finally:
+        log.disabled = was
+
+
 def _tiff_metadata(p: Path) -> tuple[dict, float]:
     """gonio JSON from ImageDescription and EXIF ExposureTime of a TIFF-based RAW, if any."""
     import tifffile
@@ -115,7 +179,7 @@ def _tiff_metadata(p: Path) -> tuple[dict, float]:
     md: dict = {}
     exposure = float("nan")
     try:
-        with tifffile.TiffFile(p) as tif:
+        with _tifffile_quiet(), tifffile.TiffFile(p) as tif:
             page = tif.pages[0]
             desc = page.tags.get(270)
             if desc is not None:
@@ -146,7 +210,7 @@ def _check_tiff_complete(p: Path) -> None:
 
     size = p.stat().st_size
     try:
-        with tifffile.TiffFile(p) as tif:
+        with _tifffile_quiet(), tifffile.TiffFile(p) as tif:
             need = 0
             for page in tif.pages:
                 offs, counts = page.dataoffsets, page.databytecounts
@@ -164,8 +228,9 @@ def _decode_raw(p: Path) -> DecodedFrame:
     if p.suffix.lower() in _TIFF_RAW_SUFFIXES:
         _check_tiff_complete(p)
 
+    native: list[str] = []
     try:
-        with rawpy.imread(str(p)) as raw:
+        with _native_stderr(native), rawpy.imread(str(p)) as raw:
             if raw.raw_type != rawpy.RawType.Flat:
                 raise FrameError(f"{p}: not a Bayer sensor raw ({raw.raw_type})")
             dn = np.array(raw.raw_image_visible, dtype=np.float32)
@@ -179,7 +244,10 @@ def _decode_raw(p: Path) -> DecodedFrame:
         raise
     except (rawpy.LibRawError, OSError, ValueError) as exc:
         msg = str(exc).strip("b'\"")
-        raise FrameError(f"{p}: cannot decode RAW ({type(exc).__name__}: {msg})") from None
+        said = _first_line(native)
+        detail = f"{type(exc).__name__}: {msg}" + (f"; {said}" if said else "")
+        raise FrameError(f"{p}: cannot decode RAW ({detail})") from None
+    _pass_on(native)
     if pattern_idx.shape != (2, 2):
         raise FrameError(f"{p}: unsupported CFA repeat {pattern_idx.shape} (only 2×2 Bayer)")
     cfa = "".join(desc[i] for i in pattern_idx.ravel())
@@ -212,8 +280,9 @@ def _decode_raw(p: Path) -> DecodedFrame:
 def _decode_exr(p: Path) -> DecodedFrame:
     import OpenEXR
 
+    native: list[str] = []
     try:
-        with OpenEXR.File(str(p)) as f:
+        with _native_stderr(native), OpenEXR.File(str(p)) as f:
             # Copy: the binding clears the header dict in place when the file is closed.
             header = dict(f.header())
             chans = f.channels()
@@ -229,7 +298,12 @@ def _decode_exr(p: Path) -> DecodedFrame:
     except FrameError:
         raise
     except Exception as exc:  # noqa: BLE001 — OpenEXR raises plain RuntimeError/Exception
-        raise FrameError(f"{p}: cannot read EXR ({type(exc).__name__}: {exc})") from None
+        # The library's own complaint (e.g. "corrupt leader ... file offset N") says more than
+        # the exception the binding raises afterwards; drop the repeated path from it.
+        said = _first_line(native).replace(f"{p}: ", "")
+        detail = said or f"{type(exc).__name__}: {exc}"
+        raise FrameError(f"{p}: cannot read EXR ({detail})") from None
+    _pass_on(native)
     if kind == "RGB" and (dn.ndim != 3 or dn.shape[-1] != 3):
         raise FrameError(f"{p}: EXR RGB channels have unexpected shape {dn.shape}")
     md: dict = {}

@@ -14,7 +14,7 @@ import numpy as np
 
 from acquisition.kinematics import look_at_rotation
 
-__all__ = ["Intrinsics", "PixelGeometry", "pixel_geometry"]
+__all__ = ["Intrinsics", "PixelGeometry", "pixel_geometry", "project_points"]
 
 
 @dataclass(frozen=True)
@@ -87,3 +87,15 @@ def pixel_geometry(
     wo = to_cam / np.linalg.norm(to_cam, axis=-1, keepdims=True)
     on &= (wi[..., 2] > 0) & (wo[..., 2] > 0)
     return PixelGeometry(p, wi, wo, r, on)
+
+
+def project_points(intr: Intrinsics, camera_pos_m: np.ndarray, points_m: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (N, 2) = (u, v) of world points (N, 3) seen by the camera at
+    ``camera_pos_m`` looking at the origin (pinhole, OpenCV convention as in `pixel_geometry`):
+    x_cam = Rᵀ(X − C), u = f_x x/z + c_x, v = f_y y/z + c_y."""
+    cam = np.asarray(camera_pos_m, dtype=np.float64)
+    rot = look_at_rotation(cam)
+    pc = (np.atleast_2d(np.asarray(points_m, dtype=np.float64)) - cam) @ rot
+    return np.stack(
+        [intr.fx * pc[:, 0] / pc[:, 2] + intr.cx, intr.fy * pc[:, 1] / pc[:, 2] + intr.cy], axis=-1
+    )

@@ -8,6 +8,17 @@ superpixels, greens summed), convert to radiance with the camera irradiance equa
 the surface irradiance at each pixel's own surface point, and bin pixels into square regions
 (σ of the mean from the noise model, including the dark and flat uncertainties).
 
+Radiometry (``ReduceOptions.radiometry``): "certified" divides by the light's certified intensity
+(rig config) and trusts the camera irradiance equation; "reference" replaces both by the effective
+intensity measured on a reference target (calibration.reference), whose own σ is added in
+quadrature to every sample's σ (it is a correlated systematic; also reported in the metadata);
+"auto" (default) uses the reference captures when the run has them, else the certified intensity.
+Without either the result is relative and flagged so (``gonio.absolute`` = "false").
+
+Segmentation (``ReduceOptions.segment``): per pose the sample is segmented in the image
+(calibration.segmentation) around its geometric footprint; footprint pixels the image puts on the
+holder or background (a mis-estimated pose, an occluding rim) are kept but flagged MASKED.
+
 Calibration frames live raw in `RUN/calibration/` (`calibration.darks`, `calibration.flatfield`).
 Bad input: a frame listed in the manifest but missing → CalibrationError naming the first; a
 frame that exists but cannot be decoded (truncated RAW, EXR without colour channels) → that
@@ -32,9 +43,17 @@ from acquisition.store import RunStore
 from calibration.darks import CalibrationFrameError, load_darks
 from calibration.decode import FrameError, decode_frame
 from calibration.flatfield import load_flat
-from calibration.geometry import Intrinsics, pixel_geometry
+from calibration.geometry import Intrinsics, pixel_geometry, project_points
 from calibration.hdr import merge_brackets
 from calibration.radiometry import CameraRadiometry, surface_irradiance
+from calibration.reference import (
+    ReferenceScale,
+    combine_scales,
+    load_reference_target,
+    pixel_scale,
+    reference_entries,
+)
+from calibration.segmentation import segment_sample
 from fitting.directions import vector_to_spherical
 from fitting.samples import Flags, SampleTable, write_samples
 
@@ -61,6 +80,12 @@ class ReduceOptions:
     # (relative to the commanded level), so lamp drift during a long run does not become a
     # drift of the BRDF. Without a monitor reading the certified value is used as is.
     light_monitor: bool = True
+    # "auto": the reference-target scale if the run has reference captures, else the certified
+    # intensity; "certified" / "reference" force one (reference without captures is an error).
+    radiometry: str = "auto"
+    # Segment the sample in each image and flag footprint pixels off it as MASKED.
+    segment: bool = True
+    segment_band_px: float = 4.0  # largest footprint error (image pixels) the image can correct
 
 
 def _channels_of(flux, var, sat, channels: str, cfa_pattern: str | None):
@@ -126,9 +151,21 @@ def reduce_run(
     progress: bool = False,
 ) -> SampleTable:
     """Reduce `run_dir` and write `samples.parquet` into it (or to `out`)."""
-    options = options or ReduceOptions()
     run_dir = Path(run_dir)
     store = RunStore.open(run_dir)
+    try:
+        return _reduce_open_run(store, run_dir, options or ReduceOptions(), out, progress)
+    finally:
+        store.close()  # a long-lived process (study, report) must not leak SQLite handles
+
+
+def _reduce_open_run(
+    store: RunStore,
+    run_dir: Path,
+    options: ReduceOptions,
+    out: str | Path | None,
+    progress: bool,
+) -> SampleTable:
     cfg = store.run_config()
     try:
         rig = RigConfig.model_validate(cfg["rig"])
@@ -169,6 +206,43 @@ def reduce_run(
     except (CalibrationFrameError, FrameError) as exc:
         raise CalibrationError(f"{run_dir}: {exc}") from None
 
+    if options.radiometry not in ("auto", "certified", "reference"):
+        raise CalibrationError(
+            f"radiometry must be 'auto', 'certified' or 'reference' (got {options.radiometry!r})"
+        )
+    try:
+        refs = reference_entries(run_dir)
+    except CalibrationFrameError as exc:
+        raise CalibrationError(f"{run_dir}: {exc}") from None
+    method = options.radiometry
+    if method == "auto":
+        method = "reference" if refs else "certified"
+    ref_scale: ReferenceScale | None = None
+    ref_rel = np.zeros(3)
+    if method == "reference":
+        if not refs:
+            raise CalibrationError(
+                f"{run_dir}: --radiometry reference but the run has no reference-target captures"
+            )
+        try:
+            ref_scale = _reference_scale(
+                run_dir,
+                refs,
+                radiometry,
+                intr,
+                kin,
+                sample_size_m,
+                options,
+                darks,
+                flat,
+                rig.light.level,
+            )
+        except (CalibrationFrameError, FrameError) as exc:
+            raise CalibrationError(f"{run_dir}: reference target: {exc}") from None
+        absolute = True
+        intensity = ref_scale.k
+        ref_rel = ref_scale.sigma / ref_scale.k
+
     cols: dict[str, list[np.ndarray]] = defaultdict(list)
     skipped: list[dict] = []
     iterator = sorted(by_pose.items())
@@ -196,6 +270,7 @@ def reduce_run(
                     cols,
                     darks,
                     flat,
+                    ref_rel,
                 )
             if bar is not None:
                 bar.advance(task)
@@ -234,8 +309,16 @@ def reduce_run(
                     "version": CALIBRATION_VERSION,
                     "run": str(run_dir.name),
                     "bin_px": options.bin_px,
-                    "method": "camera irradiance equation, point source E = I cos(theta_i)/r^2",
-                    "intensity_W_sr": intensity.tolist() if absolute else None,
+                    "radiometry": method,
+                    "method": (
+                        "reference target: k = L_ref/(f_ref cos(theta_i)/r^2), "
+                        "f = L/(k cos(theta_i)/r^2); sigma includes sigma_k in quadrature"
+                        if method == "reference"
+                        else "camera irradiance equation, point source E = I cos(theta_i)/r^2"
+                    ),
+                    "intensity_W_sr": np.asarray(intensity).tolist() if absolute else None,
+                    "reference": None if ref_scale is None else ref_scale.describe(),
+                    "segment": options.segment,
                     "mode": options.mode,
                     "dark": (
                         None
@@ -360,11 +443,25 @@ def _monitor_factor(recs, level: float) -> float:
     return float(np.mean(readings)) / level
 
 
-def _reduce_pose(
-    recs, decoded, radiometry, intr, kin, intensity, sample_size_m, options, cols, darks, flat
-) -> None:
-    exposures = [float(r.exposure_s) for r in recs]
-    axes = recs[0].axes_measured
+@dataclass
+class _Plane:
+    """One colour channel of a pose at channel resolution, with its per-pixel geometry."""
+
+    name: str
+    flux: np.ndarray  # e/s per channel value (flat-corrected)
+    var: np.ndarray
+    all_sat: np.ndarray
+    geo: object  # PixelGeometry; on_sample includes the edge margin (and whole superpixels)
+    offset: float
+    step: int
+    sites: int
+
+
+def _pose_planes(
+    decoded, exposures, axes, radiometry, intr, kin, sample_size_m, options, darks, flat
+):
+    """Merge a pose's brackets and split it into colour planes with their geometry; also the
+    image segmentation of the sample (bool at channel resolution, None if disabled)."""
     cam_pos, light_pos = kin.camera_position_m(axes), kin.light_position_m(axes)
     # Where each full-resolution pixel (photosite) lands on the sample, edge margin included.
     on_full = pixel_geometry(
@@ -376,16 +473,15 @@ def _reduce_pose(
     names, fluxes, variances, sats, step, offsets, sites = _channels_of(
         flux_all, var_all, sat_all, decoded[0].channels, decoded[0].cfa_pattern
     )
-    k_rad = radiometry.radiance_per_electron_rate
     geos: dict[float, object] = {}
     sites_on = None
     if step > 1:
         # A superpixel is on the sample only if every photosite of it is: at grazing views one
         # photosite spans more than the edge margin, so the centroid's test is not enough.
         sites_on = _block_all(on_full, step)
+    planes = []
     for c, name in enumerate(names):
-        b = options.bin_px
-        offset, step_c = offsets[c], step
+        offset = offsets[c]
         if offset not in geos:
             geos[offset] = pixel_geometry(
                 intr,
@@ -401,7 +497,118 @@ def _reduce_pose(
             geo = type(geo)(
                 geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample & sites_on
             )
-        flux, var, all_sat = fluxes[c], variances[c], sats[c]
+        planes.append(_Plane(name, fluxes[c], variances[c], sats[c], geo, offset, step, sites[c]))
+    seg = None
+    if options.segment:
+        # The image of all colours together (a superpixel per value for a mosaic) around the
+        # sample's projected corners, in that image's pixel coordinates.
+        half = sample_size_m / 2.0
+        corners_m = np.array(
+            [[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]]
+        )
+        corners = (project_points(intr, cam_pos, corners_m) - (step - 1) / 2.0) / step
+        image = np.sum(fluxes, axis=0)
+        noise = np.sqrt(np.sum(variances, axis=0))
+        # A pixel saturated in every bracket is bright whatever its merged value says.
+        sat_any = np.any(sats, axis=0)
+        finite = np.isfinite(image) & ~sat_any
+        image = np.where(sat_any, image[finite].max() if finite.any() else 0.0, image)
+        if np.all(np.isfinite(corners)):
+            seg = segment_sample(
+                image, corners, noise_sd=noise, band_px=options.segment_band_px
+            ).mask
+    return planes, seg
+
+
+def _reference_scale(
+    run_dir, refs, radiometry, intr, kin, sample_size_m, options, darks, flat, level
+) -> ReferenceScale:
+    """Effective intensity per channel from the reference-target captures (calibration.reference):
+    per pose the mean over on-target pixels of L̃/(f_ref cos θ_i/r²), divided by the monitor's
+    relative reading at that pose, then combined over poses."""
+    target = load_reference_target(run_dir)
+    lut = {"R": 0, "G": 1, "B": 2}
+    per_pose: list[dict] = []
+    names: list[str] | None = None
+    for pose, entries in sorted(refs.items()):
+        entries = sorted(entries, key=lambda e: float(e["exposure_s"]))
+        decoded = [decode_frame(Path(run_dir) / e["path"]) for e in entries]
+        exposures = [float(e["exposure_s"]) for e in entries]
+        axes = {k: float(v) for k, v in entries[0]["axes_rad"].items()}
+        planes, seg = _pose_planes(
+            decoded, exposures, axes, radiometry, intr, kin, sample_size_m, options, darks, flat
+        )
+        readings = [
+            float(e["light_measured"])
+            for e in entries
+            if isinstance(e.get("light_measured"), int | float) and e["light_measured"] > 0
+        ]
+        monitor = float(np.mean(readings)) / level if readings and level > 0 else 1.0
+        ks, ss = [], []
+        for pl in planes:
+            valid = pl.geo.on_sample & ~pl.all_sat
+            if seg is not None:
+                valid &= seg
+            if valid.sum() < 2:
+                raise CalibrationFrameError(f"pose {pose}: the target is not in view")
+            wi, wo = pl.geo.wi[valid], pl.geo.wo[valid]
+            f_all = target.f_ref(wi, wo)
+            f_ref = f_all.mean(axis=1) if pl.name == "Y" else f_all[:, lut[pl.name]]
+            scale = radiometry.radiance_per_electron_rate / pl.sites
+            e_geom = surface_irradiance(1.0, wi[:, 2], pl.geo.light_distance_m[valid])
+            k, sk = pixel_scale(pl.flux[valid] * scale, pl.var[valid] * scale**2, e_geom, f_ref)
+            ks.append(k / monitor)
+            ss.append(sk / monitor)
+        names = [pl.name for pl in planes]
+        per_pose.append({"pose": pose, "k_W_sr": ks, "sigma_W_sr": ss})
+    k_all = np.array([p["k_W_sr"] for p in per_pose])
+    s_all = np.array([p["sigma_W_sr"] for p in per_pose])
+    res = [combine_scales(k_all[:, c], s_all[:, c]) for c in range(k_all.shape[1])]
+    return ReferenceScale(
+        channels=list(names or []),
+        k=np.array([r[0] for r in res]),
+        sigma=np.array([r[1] for r in res]),
+        n_poses=len(per_pose),
+        birge=np.array([r[2] for r in res]),
+        per_pose=per_pose,
+    )
+
+
+def _reduce_pose(
+    recs,
+    decoded,
+    radiometry,
+    intr,
+    kin,
+    intensity,
+    sample_size_m,
+    options,
+    cols,
+    darks,
+    flat,
+    ref_rel=None,
+) -> None:
+    exposures = [float(r.exposure_s) for r in recs]
+    planes, seg = _pose_planes(
+        decoded,
+        exposures,
+        recs[0].axes_measured,
+        radiometry,
+        intr,
+        kin,
+        sample_size_m,
+        options,
+        darks,
+        flat,
+    )
+    k_rad = radiometry.radiance_per_electron_rate
+    ref_rel = np.zeros(3) if ref_rel is None else np.asarray(ref_rel, dtype=np.float64)
+    for c, pl in enumerate(planes):
+        name, geo = pl.name, pl.geo
+        b = options.bin_px
+        offset, step_c = pl.offset, pl.step
+        flux, var, all_sat = pl.flux, pl.var, pl.all_sat
+        off_image = np.zeros(flux.shape, bool) if seg is None else ~seg
         if options.mode == "center" and b > 1:
             # Keep the pixel nearest each region's centre; then treat it as a 1×1 region.
             h, w = geo.on_sample.shape[0] // b, geo.on_sample.shape[1] // b
@@ -416,7 +623,7 @@ def _reduce_pose(
                     for a in (geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
                 )
             )
-            flux, var, all_sat = pick(flux), pick(var), pick(all_sat)
+            flux, var, all_sat, off_image = pick(flux), pick(var), pick(all_sat), pick(off_image)
             offset = offset + m * step_c
             step_c = step_c * b
             b = 1
@@ -433,21 +640,24 @@ def _reduce_pose(
         ys, xs = np.nonzero(on)
         px = (xs * b + (b - 1) / 2.0) * step_c + offset
         py = (ys * b + (b - 1) / 2.0) * step_c + offset
-        scale = k_rad / sites[c]  # summed greens count twice the photosite area
-        i_c = (
-            float(intensity[min(c, len(intensity) - 1)])
-            if name != "Y"
-            else float(np.mean(intensity))
-        )
+        scale = k_rad / pl.sites  # summed greens count twice the photosite area
+        if name != "Y":
+            i_c = float(intensity[min(c, len(intensity) - 1)])
+            rel_c = float(ref_rel[min(c, len(ref_rel) - 1)])
+        else:
+            i_c, rel_c = float(np.mean(intensity)), float(np.mean(ref_rel))
         e_surf = e_surf_geom * i_c
         with np.errstate(divide="ignore", invalid="ignore"):
             f_px = flux * scale / e_surf
             var_f_px = var * (scale / e_surf) ** 2
         f_reg = _block_mean(f_px, b)[on]
         n_px = b * b
-        sigma_reg = np.sqrt(_block_mean(var_f_px, b)[on] / n_px)
+        # The reference scale's σ is common to every sample of the channel (a correlated
+        # systematic); adding it in quadrature keeps each σ honest on its own.
+        sigma_reg = np.sqrt(_block_mean(var_f_px, b)[on] / n_px + (f_reg * rel_c) ** 2)
         flags = np.zeros(f_reg.shape, np.int32)
         flags[_block_any(all_sat, b)[on]] |= Flags.SATURATED
+        flags[_block_any(off_image, b)[on]] |= Flags.MASKED
         with np.errstate(divide="ignore", invalid="ignore"):
             snr = f_reg / sigma_reg
         flags[~(snr >= options.min_snr)] |= Flags.DARK

@@ -38,7 +38,22 @@ from pathlib import Path
 import emcee
 import numpy as np
 
-__all__ = ["MOVES", "McmcResult", "run_mcmc", "split_rhat", "rhat_across", "initial_ball"]
+__all__ = [
+    "MOVES",
+    "ChainFileError",
+    "McmcResult",
+    "run_mcmc",
+    "split_rhat",
+    "rhat_across",
+    "initial_ball",
+]
+
+
+class ChainFileError(ValueError):
+    """A stored chain (``fit-<model>.h5``) cannot be read for a resume. One-line message.
+
+    It is never overwritten in that case: a damaged file may still be someone's only copy of
+    a long chain, so the user decides whether to delete it."""
 
 
 @dataclass
@@ -141,6 +156,30 @@ def _named_moves(name: str):
     raise ValueError(f"moves {name!r}: use one of {', '.join(MOVES)}")
 
 
+def _chain_error(path, exc: BaseException) -> str:
+    first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return (
+        f"{path}: not a readable MCMC chain ({first}); delete or move it to start a new "
+        "chain, or fit with another --out"
+    )
+
+
+def _check_chain_file(path: Path) -> None:
+    """Refuse an existing chain file that is not readable HDF5 (truncated, overwritten).
+
+    emcee's ``HDFBackend.initialized`` reports such a file as "not initialised", and its
+    ``reset`` then fails deep inside h5py; checking first gives one line naming the file."""
+    if not path.exists():
+        return
+    import h5py
+
+    try:
+        with h5py.File(path, "r"):
+            pass
+    except OSError as exc:
+        raise ChainFileError(_chain_error(path, exc)) from None
+
+
 def _stored_fingerprint(backend) -> str | None:
     with backend.open() as fh:
         value = fh[backend.name].attrs.get("gonio_fingerprint")
@@ -176,13 +215,18 @@ def run_mcmc(
     backend = None
     resume = False
     if backend_path is not None:
+        _check_chain_file(Path(backend_path))
         backend = emcee.backends.HDFBackend(str(backend_path), name=backend_name)
-        resume = (
-            backend.initialized
-            and backend.shape == (walkers, ndim)
-            and backend.iteration > 0
-            and _stored_fingerprint(backend) == fingerprint
-        )
+        try:
+            resume = (
+                backend.initialized
+                and backend.shape == (walkers, ndim)
+                and backend.iteration > 0
+                and _stored_fingerprint(backend) == fingerprint
+            )
+        except (OSError, KeyError, ValueError, TypeError) as exc:
+            # KeyError/ValueError: an HDF5 file whose chain group is damaged.
+            raise ChainFileError(_chain_error(backend_path, exc)) from None
         if not resume:
             backend.reset(walkers, ndim)
             if fingerprint is not None:

@@ -100,19 +100,40 @@ def read_fit(path: str | os.PathLike) -> FitResult:
     """Read and validate ``fit-<model>.json``."""
     path = Path(path)
     try:
-        d = json.loads(path.read_text())
+        d = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise FitResultError(f"{path}: no such fit result") from None
     except json.JSONDecodeError as exc:
-        raise FitResultError(f"{path}: not JSON ({exc.msg} at line {exc.lineno})") from None
+        raise FitResultError(
+            f"{path}: not JSON ({exc.msg} at line {exc.lineno}); refit to rewrite it"
+        ) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FitResultError(f"{path}: cannot read ({exc})") from None
     if not isinstance(d, dict):
         raise FitResultError(f"{path}: not a fit result (expected a JSON object)")
     missing = [k for k in TOP_KEYS if k not in d]
     if missing:
         raise FitResultError(f"{path}: not a fit result, missing {', '.join(missing)}")
-    if int(d["schema_version"]) > FIT_SCHEMA_VERSION:
+    version = d["schema_version"]
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise FitResultError(f"{path}: schema_version: expected an integer (got {version!r})")
+    if version > FIT_SCHEMA_VERSION:
         raise FitResultError(
-            f"{path}: fit schema version {d['schema_version']} is newer than this gonio "
-            f"supports ({FIT_SCHEMA_VERSION}); upgrade gonio"
+            f"{path}: fit schema version {version} was written by a newer gonio (this one reads "
+            f"up to {FIT_SCHEMA_VERSION}); upgrade gonio"
         )
+    params = d["parameters"]
+    if not isinstance(params, dict) or not all(isinstance(v, dict) for v in params.values()):
+        raise FitResultError(f"{path}: parameters: expected {{NAME: {{...}}}}; refit to rewrite it")
+    for name, p in params.items():
+        gaps = [k for k in PARAMETER_KEYS if k != "unit" and k not in p]
+        if gaps:
+            raise FitResultError(
+                f"{path}: parameters.{name}: missing {', '.join(gaps)}; refit to rewrite it"
+            )
+    for key, kind in (("options", dict), ("diagnostics", dict), ("goodness", dict)):
+        if not isinstance(d[key], kind):
+            raise FitResultError(f"{path}: {key}: expected a JSON object; refit to rewrite it")
+    if not isinstance(d["channels"], list):
+        raise FitResultError(f"{path}: channels: expected a list; refit to rewrite it")
     return FitResult(**{k: d[k] for k in TOP_KEYS})

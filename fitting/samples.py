@@ -165,7 +165,10 @@ def read_samples(path: str | os.PathLike) -> SampleTable:
     try:
         arrow = pq.read_table(path)
     except Exception as exc:  # pyarrow raises several types for a non-Parquet file
-        raise SamplesError(f"{path}: not a Parquet samples table ({type(exc).__name__})") from None
+        raise SamplesError(
+            f"{path}: not a Parquet samples table ({type(exc).__name__}: damaged or another "
+            "format); re-create it with `gonio calibrate RUN` or write it with pyarrow"
+        ) from None
     missing = [c for c in REQUIRED_COLUMNS if c not in arrow.column_names]
     if missing:
         raise SamplesError(
@@ -177,8 +180,8 @@ def read_samples(path: str | os.PathLike) -> SampleTable:
     version = meta.get("gonio.schema_version")
     if version is not None and version.isdigit() and int(version) > SCHEMA_VERSION:
         raise SamplesError(
-            f"{path}: samples schema version {version} is newer than this gonio supports "
-            f"({SCHEMA_VERSION}); upgrade gonio"
+            f"{path}: samples schema version {version} was written by a newer gonio (this one "
+            f"reads up to {SCHEMA_VERSION}); upgrade gonio"
         )
     if arrow.num_rows == 0:
         raise SamplesError(f"{path}: the samples table is empty")
@@ -202,6 +205,21 @@ def read_samples(path: str | os.PathLike) -> SampleTable:
         if "flags" in arrow.column_names
         else np.zeros(arrow.num_rows, np.int32)
     )
+    # A NaN or inf in a row marked good is a damaged or mis-exported table, not a measurement:
+    # refuse it rather than silently fit a subset. Rows flagged bad may hold anything.
+    bad = (flags == 0) & ~finite
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        names = [
+            name
+            for name, v in (("f", f), ("sigma", sigma), *angles.items())
+            if not np.isfinite(v[first])
+        ]
+        raise SamplesError(
+            f"{path}: {int(bad.sum())} row(s) have NaN or inf in {', '.join(names)} "
+            f"(first: row {first}) but flags = 0; drop those rows or set their flags column "
+            "(e.g. 8 = masked)"
+        )
     extra = {
         name: col(name, np.int64)
         for name in ("capture_id", "pixel_x", "pixel_y")

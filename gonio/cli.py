@@ -51,7 +51,10 @@ def demo(
 ) -> None:
     """Simulated acquisition → calibration → fit → report; prints the report path."""
     from gonio.pipeline import demo as run_demo
+    from gonio.runs import check_run_path
 
+    if out_dir is not None:
+        check_run_path(out_dir)  # no '..' in run paths (gonio/runs.py)
     report = run_demo(out_dir, scene, quick)
     out.print(str(report))
 
@@ -68,8 +71,18 @@ def acquire(
 ) -> None:
     """Run a plan on a rig into OUT; resume OUT when it holds an incomplete run."""
     from gonio.pipeline import acquire as run_acquire
+    from gonio.runs import check_run_path
 
-    res = run_acquire(rig, plan, out_dir, scene_path=scene, progress=progress)
+    check_run_path(out_dir)  # no '..' in run paths (gonio/runs.py)
+    from acquisition.kinematics import Unreachable
+    from gonio.errors import UserError
+
+    try:
+        res = run_acquire(rig, plan, out_dir, scene_path=scene, progress=progress)
+    except Unreachable as exc:  # an explicit pose the rig cannot reach: name the plan file
+        if plan is None:
+            raise
+        raise UserError(f"{plan}: {exc}; change or remove that pose") from None
     o = res.outcome
     out.print(
         f"{res.run_dir}: {o.reason}; {o.captured} new capture(s), {o.adopted} recovered, "
@@ -90,6 +103,16 @@ def calibrate(
             '"center" pixel only (exact directions).'
         ),
     ] = "mean",
+    radiometry: Annotated[
+        str,
+        typer.Option(
+            help='"reference": scale from the run\'s reference-target captures; "certified": '
+            'the light\'s certified intensity; "auto": reference if the run has its captures.'
+        ),
+    ] = "auto",
+    segment: Annotated[
+        bool, typer.Option(help="Segment the sample in each image; flag the rest MASKED.")
+    ] = True,
 ) -> None:
     """Reduce RUN_DIR's frames to RUN_DIR/samples.parquet."""
     from calibration.reduce import ReduceOptions, reduce_run
@@ -98,7 +121,10 @@ def calibrate(
         raise typer.BadParameter("--bin-px must be ≥ 1")
     if mode not in ("mean", "center"):
         raise typer.BadParameter('--mode must be "mean" or "center"')
-    table = reduce_run(run_dir, ReduceOptions(bin_px=bin_px, mode=mode), progress=True)
+    if radiometry not in ("auto", "certified", "reference"):
+        raise typer.BadParameter('--radiometry must be "auto", "certified" or "reference"')
+    options = ReduceOptions(bin_px=bin_px, mode=mode, radiometry=radiometry, segment=segment)
+    table = reduce_run(run_dir, options, progress=True)
     out.print(f"{run_dir / 'samples.parquet'}: {len(table)} samples")
 
 
@@ -406,9 +432,9 @@ def runs_show(
     verify: Annotated[bool, typer.Option(help="Verify every frame's SHA-256.")] = True,
 ) -> None:
     """Config summary, counts, events (with stop reasons) and checksum verification of RUN."""
-    from gonio.runs import show_run
+    from gonio.runs import resolve_run, show_run
 
-    path = run if run.exists() or run.is_absolute() else root / run
+    path = resolve_run(run, root)  # a bare name stays inside --root; no '..' (gonio/runs.py)
     group, problems = show_run(path, verify=verify)
     out.print(group)
     if problems:
@@ -435,7 +461,7 @@ def rig_check(
     try:
         rows = check_rig(cfg)
     except DeviceFault as exc:  # the bus itself cannot be opened
-        raise UserError(str(exc)) from None
+        raise UserError(f"{rig}: bus.url: {exc}") from None
     out.print(rig_check_table(cfg, rows))
     if not all(r.ok for r in rows):
         raise typer.Exit(3)
@@ -469,6 +495,26 @@ def study_accuracy_vs_time(
     cfg = StudyConfig.quick(seeds) if quick else StudyConfig(seeds=seeds or 3)
     rows = run_study(out_dir, cfg, scene_path=scene, progress=True)
     out.print(f"{out_dir / 'accuracy-vs-time.md'}: {len(rows)} result rows")
+
+
+@study_app.command("real-materials")
+def study_real_materials(
+    quick: Annotated[bool, typer.Option("--quick", help="The ≤ 10-minute variant.")] = False,
+    out_dir: Annotated[
+        Path, typer.Option("--out", help="Where the document, plots and CSVs go.")
+    ] = Path("docs"),
+    seed: Annotated[int, typer.Option("--seed", help="Sensor-noise and MCMC seed.")] = 0,
+) -> None:
+    """Fit every model to four RGL-measured and two Ngan materials on the simulated rig; score
+    each fit on held-out directions; writes real-materials.md, .png and .csv."""
+    from gonio.errors import UserError
+    from gonio.real_materials import RealMaterialsConfig, run_real_materials
+
+    if seed < 0:
+        raise UserError("--seed must be ≥ 0")
+    cfg = RealMaterialsConfig.quick_config(seed) if quick else RealMaterialsConfig(seed=seed)
+    rows = run_real_materials(out_dir, cfg, progress=True)
+    out.print(f"{out_dir / 'real-materials.md'}: {len(rows)} fits")
 
 
 @app.command(name="plan")
@@ -532,10 +578,10 @@ def main() -> None:
         err.print("interrupted")
         sys.exit(130)
     except Exception as exc:  # the one place where errors meet the user
-        import click
-
-        if isinstance(exc, click.ClickException):
-            exc.show()
+        # Usage errors (unknown option, bad value) are click exceptions — but typer ≥ 0.16
+        # vendors click, so match the class by name across both copies rather than by identity.
+        if any(c.__name__ == "ClickException" for c in type(exc).__mro__):
+            exc.show()  # type: ignore[attr-defined]
             sys.exit(exc.exit_code)
         if debug:
             raise

@@ -10,10 +10,19 @@ from pathlib import Path
 from typing import Any
 
 import tomli_w
+from pydantic import ValidationError
 from rich.console import Console
 
-from acquisition.config import PlanConfig, RigConfig, load_plan, load_rig
-from acquisition.plans import build_plan
+from acquisition.config import (
+    PlanConfig,
+    RigConfig,
+    format_validation_error,
+    load_plan,
+    load_rig,
+)
+from acquisition.exposure import exposure_ladder
+from acquisition.plans import build_plan, lab_time_estimate
+from acquisition.protocols import Frame
 from acquisition.rig import build_rig
 from acquisition.runner import RunOutcome, fmt_duration, run_acquisition, stop_requests
 from acquisition.store import RunStore
@@ -21,7 +30,15 @@ from fitting.atomic import atomic_write_bytes
 from gonio.backends import prepare_backends
 from gonio.errors import UserError
 
-__all__ = ["acquire", "AcquireResult", "config_dir", "Timings", "demo"]
+__all__ = [
+    "acquire",
+    "AcquireResult",
+    "config_dir",
+    "Timings",
+    "demo",
+    "sample_levels_decoder",
+    "plan_exposures_s",
+]
 
 console = Console(stderr=True)
 
@@ -82,8 +99,13 @@ def acquire(
     if resumed:
         store = RunStore.open(out, writable=True)
         frozen = store.run_config()
-        rig = RigConfig.model_validate(frozen["rig"])
-        plan_cfg = PlanConfig.model_validate(frozen["plan"])
+        try:
+            rig = RigConfig.model_validate(frozen["rig"])
+            plan_cfg = PlanConfig.model_validate(frozen["plan"])
+        except KeyError as exc:
+            raise UserError(f"{out}/run.toml: missing section [{exc.args[0]}]") from None
+        except ValidationError as err:
+            raise UserError(format_validation_error(out / "run.toml", err)) from None
         scene = frozen.get("scene")
         console.print(f"resuming {out}: {store.count('done')} capture(s) already done")
     else:
@@ -100,15 +122,29 @@ def acquire(
         store = None
     world = prepare_backends(rig, scene)
     plan = build_plan(rig, plan_cfg)
-    lab_estimate = plan.lab_time_s(rig.camera.readout_s, rig.settle_s)
+    estimate = lab_time_estimate(rig, plan_cfg)
+    lab_estimate = estimate.total_max_s
+    auto = plan_cfg.exposure_mode == "auto"
     if announce:
-        console.print(
-            f"plan {plan_cfg.name}: {len(plan.poses)} poses × "
-            f"{len(plan_cfg.exposures_s)} exposure(s), {len(plan.skipped)} unreachable "
-            f"skipped; estimated lab time "
-            f"{fmt_duration(lab_estimate)} (moves {fmt_duration(plan.move_time_s)}, raster order "
-            f"would be {fmt_duration(plan.raster_move_time_s)})"
+        brackets = (
+            f"auto-exposure (≤ {plan_cfg.auto_exposure.max_brackets} frames/pose)"
+            if auto
+            else f"{len(plan_cfg.exposures_s)} exposure(s)"
         )
+        bound = "at most " if auto else ""
+        console.print(
+            f"plan {plan_cfg.name}: {len(plan.poses)} poses × {brackets}, "
+            f"{len(plan.skipped)} unreachable skipped; estimated lab time {bound}"
+            f"{fmt_duration(estimate.phase1_s)} (moves {fmt_duration(plan.move_time_s)}, raster "
+            f"order would be {fmt_duration(plan.raster_move_time_s)})"
+        )
+        if plan_cfg.type == "adaptive":
+            console.print(
+                f"adaptive: phase 2 refines around the peaks — at most "
+                f"{estimate.refine_max_poses} poses, at most "
+                f"{fmt_duration(estimate.phase2_max_s)}; total at most "
+                f"{fmt_duration(estimate.total_max_s)}"
+            )
     rig_dev = build_rig(rig)
     try:
         if store is None:
@@ -126,20 +162,89 @@ def acquire(
                 doc["scene"] = _clean(world.scene.model_dump(mode="json"))
             store = RunStore.create(out, tomli_w.dumps(doc))
         if world is not None:
-            _record_sim_calibration_frames(out, world, plan_cfg.exposures_s)
+            _record_sim_calibration_frames(out, world, plan_exposures_s(plan_cfg))
+        levels = sample_levels_decoder(
+            store.run_config()["camera"], rig, float(store.run_config()["sample"]["size_m"])
+        )
         with stop_requests() as flag:
-            outcome = run_acquisition(store, rig_dev, plan, progress=progress, stop=flag)
+            outcome = run_acquisition(
+                store, rig_dev, plan, progress=progress, stop=flag, frame_levels=levels
+            )
     finally:
         rig_dev.close()
         if store is not None:
             store.close()
-    return AcquireResult(out, outcome, resumed, time.perf_counter() - t0, lab_estimate)
+    extra = {
+        "lab_estimate": {
+            "phase1_s": estimate.phase1_s,
+            "phase2_max_s": estimate.phase2_max_s,
+            "total_max_s": estimate.total_max_s,
+            "is_upper_bound": auto or plan_cfg.type == "adaptive",
+        },
+        "phases": {
+            "prescan_poses": outcome.prescan_poses,
+            "refine_poses": outcome.refine_poses,
+        },
+    }
+    return AcquireResult(out, outcome, resumed, time.perf_counter() - t0, lab_estimate, extra)
+
+
+def plan_exposures_s(plan_cfg: PlanConfig) -> tuple[float, ...]:
+    """Every exposure the plan may take: its brackets, or the auto-exposure ladder (what the
+    master darks must cover)."""
+    if plan_cfg.exposure_mode == "auto":
+        return exposure_ladder(plan_cfg.auto_exposure)
+    return tuple(plan_cfg.exposures_s)
+
+
+def sample_levels_decoder(camera: dict[str, Any], rig: RigConfig, sample_size_m: float):
+    """A `FrameLevels` for the runner: decode a frame (calibration.decode — the same decoder
+    calibration uses) to linear levels, 0 at the black level and 1 at the camera's clip level
+    (`white_level_dn` of its description, which can sit far below the ADC's white), and keep
+    the pixels that see the sample: the sample square projected through the camera model at
+    the measured arm angles (calibration.geometry.pixel_geometry). Without intrinsics in the
+    description, the whole frame counts as the sample region."""
+    import tempfile
+
+    import numpy as np
+
+    from acquisition.kinematics import Kinematics
+    from calibration.decode import decode_frame
+    from calibration.geometry import Intrinsics, pixel_geometry
+
+    kin = Kinematics(rig)
+    try:
+        intr = Intrinsics.from_description(camera)
+    except (KeyError, TypeError, ValueError):
+        intr = None
+    clip_dn = camera.get("white_level_dn")
+
+    def levels(frame: Frame, axes_measured: dict[str, float]) -> np.ndarray:
+        with tempfile.TemporaryDirectory(prefix="gonio-levels-") as tmp:
+            path = Path(tmp) / f"frame{frame.suffix}"
+            path.write_bytes(frame.data)
+            d = decode_frame(path)
+        black = np.asarray(d.black_level, dtype=np.float64)
+        white = float(clip_dn) if clip_dn is not None else float(d.white_level)
+        lv = (np.asarray(d.dn, dtype=np.float64) - black) / (white - black)
+        if intr is None or (intr.height, intr.width) != lv.shape[:2]:
+            return lv.ravel()
+        on = pixel_geometry(
+            intr,
+            kin.camera_position_m(axes_measured),
+            kin.light_position_m(axes_measured),
+            sample_size_m,
+        ).on_sample
+        return lv[on].ravel()
+
+    return levels
 
 
 def _record_sim_calibration_frames(out: Path, world: Any, exposures_s: tuple[float, ...]) -> None:
-    """Master darks (one set per exposure) and a flat field, recorded before the first pose as
-    a lab would — only when the simulated sensor has an effect they correct (dark current,
-    DSNU, PRNU, vignetting); a run that already has them (a resumed run) keeps its own."""
+    """Master darks (one set per exposure), a flat field and reference-target captures,
+    recorded before the first pose as a lab would — only when the simulated sensor has an effect
+    they correct (dark current, DSNU, PRNU, vignetting); a run that already has them (a resumed
+    run) keeps its own."""
     from calibration.darks import calibration_frames, record_frames
 
     s = world.scene.sensor
@@ -150,6 +255,29 @@ def _record_sim_calibration_frames(out: Path, world: Any, exposures_s: tuple[flo
         record_frames(out, "dark", cam.capture_dark, list(exposures_s), 16)
     if not calibration_frames(out, "flat"):
         record_frames(out, "flat", cam.capture_flat, [max(exposures_s)], 32)
+    if not calibration_frames(out, "reference"):
+        # A Lambertian reference target at the standard poses (calibration.reference): with it
+        # the reduction measures the light × camera scale instead of trusting certificates.
+        from calibration.reference import record_reference_poses
+
+        # Three brackets at most (shortest, middle, longest) span the HDR range; a long
+        # auto-exposure ladder would only multiply the renders.
+        ref_exposures = sorted(exposures_s)
+        if len(ref_exposures) > 3:
+            ref_exposures = [
+                ref_exposures[0],
+                ref_exposures[len(ref_exposures) // 2],
+                ref_exposures[-1],
+            ]
+        record_reference_poses(
+            out,
+            lambda t, light_pos, cam_pos: cam.capture_reference(
+                t, light_pos, cam_pos, level=world.rig.light.level
+            ),
+            world.kinematics,
+            ref_exposures,
+            level=world.rig.light.level,
+        )
 
 
 def _sample_size(world: Any) -> float:

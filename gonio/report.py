@@ -20,20 +20,43 @@ import time
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.ticker import MaxNLocator  # noqa: E402
-
-from acquisition.store import RunStore, atomic_write_bytes  # noqa: E402
-from fitting import models  # noqa: E402
-from fitting.directions import spherical_to_vector  # noqa: E402
-from fitting.rusinkiewicz import to_half_diff  # noqa: E402
-from fitting.samples import read_samples  # noqa: E402
+from acquisition.store import RunStore, atomic_write_bytes
+from fitting.samples import read_samples
 
 __all__ = ["write_report"]
+
+# Plotting and the model registry (matplotlib, numba, scipy: ~1 s to import) are loaded by
+# `_import_plotting` only once the run, its samples and its fits have been checked, so a
+# report refused for bad input says so at once.
+plt: Any = None
+MaxNLocator: Any = None
+models: Any = None
+spherical_to_vector: Any = None
+to_half_diff: Any = None
+
+
+def _import_plotting() -> None:
+    global plt, MaxNLocator, models, spherical_to_vector, to_half_diff
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as _plt
+    from matplotlib.ticker import MaxNLocator as _locator
+
+    from fitting import models as _models
+    from fitting.directions import spherical_to_vector as _s2v
+    from fitting.rusinkiewicz import to_half_diff as _thd
+
+    plt, MaxNLocator, models, spherical_to_vector, to_half_diff = (
+        _plt,
+        _locator,
+        _models,
+        _s2v,
+        _thd,
+    )
+
 
 _CSS = """
 body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222;padding:0 1em}
@@ -420,11 +443,31 @@ def _posterior_plot(
 def write_report(run_dir: Path | str, compute_times_s: dict[str, float] | None = None) -> Path:
     run_dir = Path(run_dir)
     store = RunStore.open(run_dir)
+    try:
+        return _write_report(run_dir, store, compute_times_s)
+    finally:
+        store.close()
+
+
+def _write_report(run_dir: Path, store: RunStore, compute_times_s: dict[str, float] | None) -> Path:
+    from fitting.result import read_fit
+    from gonio.errors import UserError
+
     cfg = store.run_config()
+    if store.count("done") == 0:
+        raise UserError(
+            f"{run_dir}: the run has no completed captures; nothing to report (resume it with "
+            f"`gonio acquire --out {run_dir}`)"
+        )
     samples_path = run_dir / "samples.parquet"
+    if not samples_path.exists():
+        raise UserError(f"{samples_path}: no samples yet; run `gonio calibrate {run_dir}` first")
     samples = read_samples(samples_path)
     fit_paths = sorted(run_dir.glob("fit-*.json"))
-    fits = [json.loads(p.read_text()) for p in fit_paths]
+    # read_fit checks every key the page uses, so a damaged or foreign fit file is one line
+    # naming it, not a KeyError halfway through the page.
+    fits = [read_fit(p).to_dict() for p in fit_paths]
+    _import_plotting()
     labels = [p.stem[len("fit-") :] for p in fit_paths]
     best = _best_label(run_dir)
     if best in labels:  # the preferred model first: its curves go on the slice plot

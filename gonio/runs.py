@@ -3,6 +3,20 @@ they are in, why they stopped; and whether every servo of a rig answers and is h
 
 Everything here only reads: a run directory is opened read-only (an acquisition may be writing
 it at the same time; SQLite WAL lets readers in), and `rig check` never moves or powers a servo.
+
+Where runs live, and which names are allowed (`resolve_run`, `check_run_path`):
+
+- The *runs directory* is `--root` of `gonio runs` (default `runs/` under the working
+  directory); `gonio demo` without `--out` creates its run there too.
+- A *run name* is one plain path component (`2026-11-23-teflon`): it is looked up inside the
+  runs directory, and must stay there — a name with `..`, a path separator, or that resolves
+  outside the runs directory through a symlink, is refused.
+- An explicit *run path* (`gonio runs show ./runs/x`, `gonio acquire --out /data/run7`,
+  `gonio demo --out tmp/d`) is the user's own choice of place and is used as given, absolute
+  or relative — but never with a `..` component: every run path the CLI accepts names its
+  directory directly, so a pasted or generated name can never climb out of where it is put.
+- Inside a run, paths come from the manifest and are data, not trusted: `acquisition.store`
+  refuses any frame path that is absolute, has `..`, or resolves outside the run directory.
 """
 
 from __future__ import annotations
@@ -17,8 +31,12 @@ from rich.table import Table
 
 from acquisition.config import PlanConfig, RigConfig
 from acquisition.store import RunStore, RunStoreError
+from gonio.errors import UserError
 
 __all__ = [
+    "RunPathError",
+    "resolve_run",
+    "check_run_path",
     "RunSummary",
     "find_runs",
     "summarize_run",
@@ -28,6 +46,41 @@ __all__ = [
     "check_rig",
     "rig_check_table",
 ]
+
+
+class RunPathError(UserError):
+    """A run name or path that would leave its directory. One-line message."""
+
+
+def check_run_path(path: Path | str, what: str = "--out") -> Path:
+    """An explicit run path, refused when it has a `..` component (see the module docstring)."""
+    p = Path(path)
+    if ".." in p.parts:
+        raise RunPathError(
+            f"{what} {str(path)!r}: '..' is not allowed in run paths; give the directory "
+            "without '..' (e.g. an absolute path)"
+        )
+    if str(path).strip() == "" or "\x00" in str(path):
+        raise RunPathError(f"{what} {str(path)!r}: not a usable directory name")
+    return p
+
+
+def resolve_run(arg: Path | str, root: Path | str = "runs") -> Path:
+    """The run directory meant by a `gonio runs show` argument: a bare name is looked up inside
+    `root` (and must stay inside it); a path is used as given (without `..`)."""
+    text = str(arg)
+    p = check_run_path(arg, "RUN")
+    root = Path(root)
+    if len(p.parts) == 1 and not p.is_absolute():
+        if p.exists():
+            return p  # a run directory in the working directory, named explicitly
+        full = root / p
+        if not full.resolve().is_relative_to(root.resolve()):
+            raise RunPathError(
+                f"RUN {text!r}: resolves outside the runs directory {root} (symlink); refusing"
+            )
+        return full
+    return p
 
 
 @dataclass
@@ -51,12 +104,22 @@ def _total(frozen: dict[str, Any]) -> int | None:
     try:
         rig = RigConfig.model_validate(frozen["rig"])
         plan = PlanConfig.model_validate(frozen["plan"])
+        if plan.exposure_mode == "auto" or plan.type == "adaptive":
+            # Auto-exposure decides the frames per pose, and phase 2 of an adaptive plan is
+            # decided during the run: no count is known before the run ends.
+            return None
         # Raster order: the count does not depend on the order, and 2-opt would cost seconds
         # per run on big plans.
         built = build_plan(rig, plan.model_copy(update={"order": "raster"}))
     except Exception:  # a summary must not fail on one odd run
         return None
     return len(built.poses) * len(plan.exposures_s)
+
+
+def _exposures(plan: dict[str, Any]) -> str:
+    if plan.get("exposure_mode") == "auto":
+        return "auto per pose"
+    return f"{plan.get('exposures_s', '?')} s"
 
 
 def summarize_run(path: Path | str) -> RunSummary:
@@ -66,10 +129,9 @@ def summarize_run(path: Path | str) -> RunSummary:
     except RunStoreError as exc:
         return RunSummary(path, f"unreadable: {exc}", 0, 0, None, "?", math.nan, None)
     try:
-        try:
-            frozen = store.run_config()
-        except Exception:
-            frozen = {}
+        # A damaged manifest or a run.toml from a newer gonio makes the run "unreadable" here
+        # (one row of `runs list`); `runs show` turns that into its one-line error.
+        frozen = store.run_config()
         stops = [m for _, k, m in store.events() if k == "stop"]
         started = str(frozen.get("gonio", {}).get("started_at") or store.meta("created_at") or "?")
         return RunSummary(
@@ -84,6 +146,11 @@ def summarize_run(path: Path | str) -> RunSummary:
             rig=frozen.get("rig", {}),
             plan=frozen.get("plan", {}),
         )
+    except RunStoreError as exc:
+        return RunSummary(path, f"unreadable: {exc}", 0, 0, None, "?", math.nan, None)
+    except ValueError as exc:  # e.g. a lab_time_s that is not a number
+        msg = f"{path}/manifest.sqlite: damaged meta value ({exc})"
+        return RunSummary(path, f"unreadable: {msg}", 0, 0, None, "?", math.nan, None)
     finally:
         store.close()
 
@@ -136,8 +203,10 @@ def show_run(path: Path | str, *, verify: bool = True) -> tuple[Group, list[str]
     rig, plan = s.rig, s.plan
     head.add_row("status", s.status)
     head.add_row("started", s.started)
-    total = "?" if s.total is None else str(s.total)
-    head.add_row("captures", f"{s.done} done / {total} planned, {s.pending} pending")
+    if s.total is None:
+        head.add_row("captures", f"{s.done} done, {s.pending} pending (count set during the run)")
+    else:
+        head.add_row("captures", f"{s.done} done / {s.total} planned, {s.pending} pending")
     head.add_row("lab time", _fmt_s(s.lab_time_s))
     head.add_row(
         "rig",
@@ -147,7 +216,7 @@ def show_run(path: Path | str, *, verify: bool = True) -> tuple[Group, list[str]
     head.add_row(
         "plan",
         f"{plan.get('name', '?')} ({plan.get('type', '?')}, order {plan.get('order', '?')}, "
-        f"exposures {plan.get('exposures_s', '?')} s)",
+        f"exposures {_exposures(plan)})",
     )
     store = RunStore.open(path)
     try:

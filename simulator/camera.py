@@ -8,6 +8,7 @@ on a real rig.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
 from typing import Any
@@ -22,6 +23,10 @@ from simulator.scene import Scene
 from simulator.sensor import Sensor
 
 __all__ = ["SimCamera"]
+
+
+def _material_dict(material) -> dict:
+    return material.model_dump() if hasattr(material, "model_dump") else dict(material)
 
 
 class SimCamera:
@@ -47,6 +52,7 @@ class SimCamera:
             intrinsics=self.renderer.intrinsics,
         )
         self.captures = 0
+        self._reference_renderers: dict[str, Renderer] = {}
 
     def supported_exposures(self) -> tuple[float, float]:
         return (1e-5, 30.0)
@@ -117,6 +123,40 @@ class SimCamera:
         k = self.renderer.intrinsics
         L = self.flat_radiance(exposure_s) if radiance_W_m2_sr is None else radiance_W_m2_sr
         return self._expose(np.full((int(k["height"]), int(k["width"]), 3), L), exposure_s)
+
+    def capture_reference(
+        self,
+        exposure_s: float,
+        light_pos_m,
+        camera_pos_m,
+        *,
+        level: float = 1.0,
+        material: object | None = None,
+        reflectance: float = 0.99,
+    ) -> Frame:
+        """A capture of the reference target (``render.reference_target_scene``: Lambertian of
+        albedo ``reflectance``, or ``material``) put in the sample's place, with the lamp at
+        relative ``level``, at the given light and camera positions (a lab swaps the sample for
+        the target and drives the arms to the reference poses). Same sensor, so the same fixed
+        pattern, vignetting and noise as the measurement frames."""
+        renderer = self.reference_renderer(material, reflectance)
+        radiance = renderer.render(light_pos_m, camera_pos_m, intensity_scale=float(level))
+        return self._expose(radiance, exposure_s)
+
+    def reference_renderer(
+        self, material: object | None = None, reflectance: float = 0.99
+    ) -> Renderer:
+        """The renderer of the reference target (one per target, loaded once). Its
+        ``truth_bsdf`` is Mitsuba's own f_r of the target — what a lab's calibration certificate
+        tabulates (tests build their f_ref table from it)."""
+        key = json.dumps(None if material is None else _material_dict(material), sort_keys=True)
+        key += f"/{reflectance!r}"
+        if key not in self._reference_renderers:
+            from simulator.render import reference_target_scene
+
+            scene = reference_target_scene(self.scene, reflectance, material)
+            self._reference_renderers[key] = Renderer(scene, variant=self.renderer.variant)
+        return self._reference_renderers[key]
 
     def _expose(self, radiance: np.ndarray, exposure_s: float) -> Frame:
         dn = self.sensor.capture(radiance, exposure_s)

@@ -515,12 +515,21 @@ def board_renderer(
     return BoardTarget(renderer=r, offset_m=(ox, oy), extent_m=(sx, sy))
 
 
-def reference_target_scene(scene: Scene, reflectance: float = 0.99) -> Scene:
-    """The same rig with the sample replaced by a Lambertian reference target of albedo
-    ``reflectance`` (f_ref = ρ/π, e.g. Spectralon near normal incidence; DESIGN §7 warns that
-    real Spectralon departs from Lambert at large angles — use a measured or model material for
-    a calibrated f_ref(θ))."""
+def reference_target_scene(
+    scene: Scene, reflectance: float = 0.99, material: object | None = None
+) -> Scene:
+    """The same rig with the sample replaced by a reference target: Lambertian of albedo
+    ``reflectance`` (f_ref = ρ/π, e.g. Spectralon near normal incidence), or any scene
+    ``material`` (a simulator.scene material model or its dict) — DESIGN §7 warns that real
+    Spectralon departs from Lambert at large angles, so a non-Lambertian target (evaluated as its
+    "calibrated table" by ``Renderer.truth_bsdf``) exercises the calibrated-f_ref(θ) path."""
     from simulator.scene import DiffuseMaterial
 
-    rho = float(reflectance)
-    return scene.model_copy(update={"material": DiffuseMaterial(reflectance=(rho, rho, rho))})
+    if material is None:
+        rho = float(reflectance)
+        material = DiffuseMaterial(reflectance=(rho, rho, rho))
+    return scene.model_validate({**scene.model_dump(), "material": _as_dict(material)})
+
+
+def _as_dict(material) -> dict:
+    return material.model_dump() if hasattr(material, "model_dump") else dict(material)

@@ -4,14 +4,13 @@ simulated rig renders. pydantic with extra="forbid", so a typo is an error namin
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from acquisition.config import ConfigError, format_validation_error
+from acquisition.config import ConfigError, format_validation_error, load_config_data
 
 __all__ = [
     "Scene",
@@ -268,15 +267,11 @@ def _resolve_material_paths(material, base: Path) -> None:
 def load_scene(path: str | Path) -> Scene:
     """Parse a scene TOML; errors are one-line `ConfigError`s naming the file and key."""
     path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"{path}: no such file")
-    try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    # The same loader as rig and plan configs: TOML or JSON only (configs are data, never
+    # code), with one-line errors for a missing, unreadable or malformed file.
+    data = load_config_data(path)
     _resolve_material_paths(data.get("material"), path.parent)
     try:
         return Scene.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(format_validation_error(path, err)) from None
+        raise ConfigError(format_validation_error(path, err, Scene)) from None

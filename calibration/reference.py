@@ -1,0 +1,385 @@
+"""Reference-target radiometric calibration: the light × camera scale from a target of known BRDF.
+
+Instead of trusting the lamp's certified intensity *and* the camera's absolute responsivity
+(QE, f-number, pixel pitch, gain), a lab images a reference target of known BRDF f_ref (a
+Lambertian standard, or Spectralon with a calibrated f_ref(θ_i, θ_o) table — Spectralon departs
+from Lambert by up to ~20 % at large angles, DESIGN §7) at known poses. With the camera irradiance
+equation as a *nominal* conversion (calibration.radiometry, L̃ = k_rad · Φ) each reference pixel
+gives the effective source intensity
+
+    k = L̃_ref / (f_ref(ω_i, ω_o) · cos θ_i / r²)                         [W sr⁻¹]
+
+— the true intensity times the ratio of the camera's true to nominal responsivity. Used in place
+of the certified intensity in f = L̃ / (k · cos θ_i / r²) this is exactly the reference-target
+method f = f_ref · (S_s/t_s)/(S_ref/t_ref) · (E_ref/E_s) (DESIGN §7; Nicodemus et al., NBS
+Monograph 160, 1977, §4) with matched per-pixel geometry (calibration.geometry): every error
+common to the reference and the sample captures (lamp intensity, QE, aperture, gain, the flat's
+absolute scale) cancels.
+
+Uncertainty: each reference pose gives k per channel with the standard error of its pixel mean
+(the larger of the noise-model and the empirical value); poses combine by inverse-variance
+weighting, inflated by the Birge ratio √(χ²/dof) when they disagree beyond their errors. The
+relative σ_k/k is a *correlated* systematic of every sample of that channel; the reduction adds
+it in quadrature to each sample's σ and also reports it in the Parquet metadata.
+
+Files (DESIGN §4, next to the darks and flats of calibration.darks): raw frames under
+``RUN/calibration/reference/``, listed in ``RUN/calibration/frames.json`` with kind "reference"
+and the pose (``axes_rad``, arm angles as for a measurement capture), the bracket's exposure and
+the light monitor's reading; the target's description in ``RUN/calibration/reference/target.json``
+(``{"type": "lambertian", "reflectance": [ρ_R, ρ_G, ρ_B]}`` or ``{"type": "table", "file":
+"f_ref.csv"}``, the table copied into the run so the run stays self-contained).
+
+f_ref tables (CSV or TOML): one row per calibrated geometry, columns ``theta_i_deg``,
+``theta_o_deg``, optionally ``delta_phi_deg`` (|φ_o − φ_i| folded to [0, 180]; without it the
+table is taken to hold for every azimuth), and either ``f`` (grey) or ``f_R, f_G, f_B`` (sr⁻¹).
+The rows must fill a regular grid; values are interpolated (multi-)linearly. A geometry outside
+the table is an error, never an extrapolation. TOML: ``[[point]]`` tables with the same keys
+(``f`` a number or a 3-list).
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import math
+import tomllib
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calibration.darks import CALIBRATION_DIR, INDEX_NAME, CalibrationFrameError, calibration_frames
+from fitting.atomic import atomic_write_bytes
+
+__all__ = [
+    "REFERENCE_KIND",
+    "FRefTable",
+    "ReferenceTarget",
+    "ReferenceShot",
+    "ReferenceScale",
+    "load_f_ref_table",
+    "record_reference_frames",
+    "record_reference_poses",
+    "REFERENCE_POSES_DEG",
+    "load_reference_target",
+    "reference_entries",
+    "pixel_scale",
+    "combine_scales",
+]
+
+REFERENCE_KIND = "reference"
+TARGET_NAME = "target.json"
+
+
+def _fold_delta_phi(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """|φ_o − φ_i| folded to [0, π] (an isotropic f_ref depends on nothing else in azimuth)."""
+    d = np.arctan2(wo[..., 1], wo[..., 0]) - np.arctan2(wi[..., 1], wi[..., 0])
+    return np.abs((d + np.pi) % (2.0 * np.pi) - np.pi)
+
+
+@dataclass(frozen=True)
+class FRefTable:
+    """f_ref on a regular grid of (θ_i, θ_o[, Δφ]) in radians; values (..., 3) in sr⁻¹."""
+
+    axes: tuple[np.ndarray, ...]
+    values: np.ndarray
+
+    def __call__(self, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        """f_ref (N, 3) at unit directions wi, wo (N, 3) (sample frame, pointing away)."""
+        from scipy.interpolate import RegularGridInterpolator
+
+        wi = np.atleast_2d(wi)
+        wo = np.atleast_2d(wo)
+        pts = [np.arccos(np.clip(wi[:, 2], -1, 1)), np.arccos(np.clip(wo[:, 2], -1, 1))]
+        if len(self.axes) == 3:
+            pts.append(_fold_delta_phi(wi, wo))
+        pts = np.stack(pts, axis=-1)
+        # 1e-9 rad slack: a grid edge at exactly 0 or π must not reject its own boundary.
+        lo = np.array([a[0] for a in self.axes]) - 1e-9
+        hi = np.array([a[-1] for a in self.axes]) + 1e-9
+        bad = np.any((pts < lo) | (pts > hi), axis=1)
+        if bad.any():
+            p = np.degrees(pts[np.argmax(bad)])
+            rng = ", ".join(f"{np.degrees(a[0]):g}..{np.degrees(a[-1]):g}" for a in self.axes)
+            raise CalibrationFrameError(
+                f"reference geometry {np.round(p, 2).tolist()} deg is outside the f_ref table "
+                f"({rng} deg): measure the reference inside its calibrated range"
+            )
+        pts = np.clip(pts, [a[0] for a in self.axes], [a[-1] for a in self.axes])
+        interp = RegularGridInterpolator(self.axes, self.values, method="linear")
+        return interp(pts)
+
+    def to_rows(self) -> tuple[list[str], list[list[float]]]:
+        names = ["theta_i_deg", "theta_o_deg", "delta_phi_deg"][: len(self.axes)]
+        names += ["f_R", "f_G", "f_B"]
+        grids = np.meshgrid(*self.axes, indexing="ij")
+        flat = [np.degrees(g).ravel() for g in grids]
+        vals = self.values.reshape(-1, 3)
+        rows = [[*(float(c[k]) for c in flat), *map(float, vals[k])] for k in range(len(vals))]
+        return names, rows
+
+    def write_csv(self, path: str | Path) -> None:
+        names, rows = self.to_rows()
+        lines = [",".join(names)] + [",".join(f"{v:.10g}" for v in r) for r in rows]
+        atomic_write_bytes(Path(path), ("\n".join(lines) + "\n").encode())
+
+
+def _table_from_rows(rows: list[dict], source: str) -> FRefTable:
+    if not rows:
+        raise CalibrationFrameError(f"{source}: the f_ref table is empty")
+    keys = set(rows[0])
+    need = {"theta_i_deg", "theta_o_deg"}
+    if not need <= keys:
+        raise CalibrationFrameError(f"{source}: f_ref table needs columns theta_i_deg, theta_o_deg")
+    has_phi = "delta_phi_deg" in keys
+    if "f" in keys:
+
+        def value(r):
+            v = r["f"]
+            v = v if isinstance(v, list | tuple) else [v, v, v]
+            if len(v) != 3:
+                raise ValueError("f must be one number or three")
+            return [float(x) for x in v]
+    elif {"f_R", "f_G", "f_B"} <= keys:
+
+        def value(r):
+            return [float(r["f_R"]), float(r["f_G"]), float(r["f_B"])]
+    else:
+        raise CalibrationFrameError(f"{source}: f_ref table needs a column f or f_R, f_G, f_B")
+    cols = ["theta_i_deg", "theta_o_deg"] + (["delta_phi_deg"] if has_phi else [])
+    try:
+        coords = np.array([[float(r[c]) for c in cols] for r in rows])
+        vals = np.array([value(r) for r in rows])
+    except (TypeError, ValueError, KeyError) as exc:
+        raise CalibrationFrameError(f"{source}: unreadable f_ref row ({exc})") from None
+    if not np.all(np.isfinite(coords)) or not np.all(np.isfinite(vals)) or np.any(vals < 0):
+        raise CalibrationFrameError(f"{source}: f_ref table has non-finite or negative values")
+    axes = [np.unique(coords[:, k]) for k in range(coords.shape[1])]
+    shape = tuple(len(a) for a in axes)
+    if math.prod(shape) != len(rows) or any(n < 2 for n in shape):
+        raise CalibrationFrameError(
+            f"{source}: f_ref rows do not fill a regular grid of ≥ 2 values per angle "
+            f"({len(rows)} rows for a {'×'.join(map(str, shape))} grid)"
+        )
+    grid = np.full((*shape, 3), np.nan)
+    idx = tuple(np.searchsorted(a, coords[:, k]) for k, a in enumerate(axes))
+    grid[idx] = vals
+    if np.isnan(grid).any():
+        raise CalibrationFrameError(f"{source}: f_ref rows repeat a geometry and miss another")
+    return FRefTable(tuple(np.radians(a) for a in axes), grid)
+
+
+def load_f_ref_table(path: str | Path) -> FRefTable:
+    """Read a calibrated f_ref table (CSV with a header row, or TOML ``[[point]]``)."""
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".toml":
+            with open(path, "rb") as fh:
+                rows = tomllib.load(fh).get("point", [])
+        else:
+            with open(path, newline="") as fh:
+                rows = [
+                    {k.strip(): v for k, v in r.items()}
+                    for r in csv.DictReader(line for line in fh if not line.startswith("#"))
+                ]
+    except (OSError, tomllib.TOMLDecodeError, csv.Error) as exc:
+        raise CalibrationFrameError(f"{path}: cannot read the f_ref table ({exc})") from None
+    return _table_from_rows(rows, str(path))
+
+
+@dataclass(frozen=True)
+class ReferenceTarget:
+    """The reference target's BRDF: Lambertian f = ρ/π, or a calibrated table."""
+
+    reflectance: tuple[float, float, float] | None = (0.99, 0.99, 0.99)
+    table: FRefTable | None = None
+
+    def f_ref(self, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        """f_ref (N, 3) in sr⁻¹ at unit directions wi, wo (N, 3)."""
+        if self.table is not None:
+            return self.table(wi, wo)
+        n = np.atleast_2d(wi).shape[0]
+        return np.broadcast_to(np.asarray(self.reflectance) / np.pi, (n, 3)).copy()
+
+    def describe(self) -> dict:
+        if self.table is not None:
+            return {"type": "table", "file": "f_ref.csv"}
+        return {"type": "lambertian", "reflectance": [float(r) for r in self.reflectance]}
+
+
+@dataclass(frozen=True)
+class ReferenceShot:
+    """One raw reference capture: the frame bytes, its exposure, the pose (arm angles in rad,
+    as in the manifest's axes_measured) and the light monitor's reading (None if none)."""
+
+    pose: int
+    axes_rad: dict[str, float]
+    exposure_s: float
+    data: bytes
+    suffix: str
+    light_measured: float | None = None
+
+
+def record_reference_frames(
+    run_dir: str | Path, target: ReferenceTarget, shots: Iterable[ReferenceShot]
+) -> list[dict]:
+    """File reference captures raw under ``RUN/calibration/reference/`` (each atomically), the
+    target description beside them, and list them in the calibration index (rewritten
+    atomically, replacing any earlier reference entries: one target per run)."""
+    run_dir = Path(run_dir)
+    folder = run_dir / CALIBRATION_DIR / REFERENCE_KIND
+    folder.mkdir(parents=True, exist_ok=True)
+    if target.table is not None:
+        target.table.write_csv(folder / "f_ref.csv")
+    atomic_write_bytes(folder / TARGET_NAME, (json.dumps(target.describe()) + "\n").encode())
+    new = []
+    for s in shots:
+        name = f"ref-p{s.pose:03d}-{float(s.exposure_s):.6g}s{s.suffix}"
+        atomic_write_bytes(folder / name, s.data)
+        new.append(
+            {
+                "kind": REFERENCE_KIND,
+                "exposure_s": float(s.exposure_s),
+                "path": f"{CALIBRATION_DIR}/{REFERENCE_KIND}/{name}",
+                "sha256": hashlib.sha256(s.data).hexdigest(),
+                "pose": int(s.pose),
+                "axes_rad": {k: float(v) for k, v in s.axes_rad.items()},
+                "light_measured": None if s.light_measured is None else float(s.light_measured),
+            }
+        )
+    entries = [e for e in calibration_frames(run_dir) if e.get("kind") != REFERENCE_KIND] + new
+    atomic_write_bytes(
+        run_dir / CALIBRATION_DIR / INDEX_NAME,
+        json.dumps({"frames": entries}, indent=1).encode(),
+    )
+    return new
+
+
+# Reference poses (θ_i, φ_i, θ_o, φ_o in deg): the 0°/45° geometry of reflectance-standard
+# certificates, and two more geometries so a pose-dependent error (f_ref, geometry) shows up as
+# scatter between poses (the Birge ratio of combine_scales).
+REFERENCE_POSES_DEG = (
+    (0.0, 0.0, 45.0, 180.0),
+    (30.0, 0.0, 30.0, 90.0),
+    (45.0, 0.0, 10.0, 270.0),
+)
+
+
+def record_reference_poses(
+    run_dir: str | Path,
+    capture,
+    kinematics,
+    exposures_s: list[float],
+    *,
+    target: ReferenceTarget | None = None,
+    poses_deg=REFERENCE_POSES_DEG,
+    level: float | None = None,
+) -> list[dict]:
+    """Drive to each reference pose and capture every exposure with
+    ``capture(exposure_s, light_pos_m, camera_pos_m) -> Frame`` (the target in the sample's
+    place), then file the shots (`record_reference_frames`). ``kinematics`` is
+    `acquisition.kinematics.Kinematics`; ``level`` is the light monitor's reading to record."""
+    from acquisition.kinematics import Pose
+
+    shots = []
+    for j, deg in enumerate(poses_deg):
+        axes = kinematics.targets(Pose.from_deg(*deg))
+        light_pos = kinematics.light_position_m(axes)
+        cam_pos = kinematics.camera_position_m(axes)
+        for t in exposures_s:
+            frame = capture(float(t), light_pos, cam_pos)
+            shots.append(ReferenceShot(j, axes, float(t), frame.data, frame.suffix, level))
+    return record_reference_frames(run_dir, target or ReferenceTarget(), shots)
+
+
+def reference_entries(run_dir: str | Path) -> dict[int, list[dict]]:
+    """The run's reference captures grouped by pose ({} if none were recorded)."""
+    out: dict[int, list[dict]] = {}
+    for e in calibration_frames(run_dir, REFERENCE_KIND):
+        if "axes_rad" not in e or "pose" not in e:
+            raise CalibrationFrameError(f"{e.get('path')}: reference entry without its pose")
+        out.setdefault(int(e["pose"]), []).append(e)
+    return out
+
+
+def load_reference_target(run_dir: str | Path) -> ReferenceTarget:
+    """The reference target recorded with the run (``calibration/reference/target.json``)."""
+    folder = Path(run_dir) / CALIBRATION_DIR / REFERENCE_KIND
+    try:
+        d = json.loads((folder / TARGET_NAME).read_text())
+    except (OSError, ValueError):
+        raise CalibrationFrameError(
+            f"{folder / TARGET_NAME}: missing or unreadable reference target description"
+        ) from None
+    if d.get("type") == "lambertian":
+        rho = d.get("reflectance")
+        if not (isinstance(rho, list) and len(rho) == 3 and all(0 < float(r) <= 1 for r in rho)):
+            raise CalibrationFrameError(f"{folder / TARGET_NAME}: reflectance must be 3 values")
+        return ReferenceTarget(reflectance=tuple(float(r) for r in rho))
+    if d.get("type") == "table":
+        return ReferenceTarget(reflectance=None, table=load_f_ref_table(folder / d["file"]))
+    raise CalibrationFrameError(f"{folder / TARGET_NAME}: type must be 'lambertian' or 'table'")
+
+
+@dataclass
+class ReferenceScale:
+    """Effective source intensity per channel (W sr⁻¹ at monitor reading = commanded level)
+    and its 1-σ, from the reference captures; ``per_pose`` keeps each pose's estimate."""
+
+    channels: list[str]
+    k: np.ndarray
+    sigma: np.ndarray
+    n_poses: int
+    birge: np.ndarray
+    per_pose: list[dict] = field(default_factory=list)
+
+    def of(self, name: str) -> tuple[float, float]:
+        j = self.channels.index(name)
+        return float(self.k[j]), float(self.sigma[j])
+
+    def describe(self) -> dict:
+        return {
+            "channels": self.channels,
+            "k_W_sr": self.k.tolist(),
+            "sigma_W_sr": self.sigma.tolist(),
+            "rel_sigma": (self.sigma / self.k).tolist(),
+            "n_poses": self.n_poses,
+            "birge_ratio": self.birge.tolist(),
+            "per_pose": self.per_pose,
+        }
+
+
+def pixel_scale(
+    radiance: np.ndarray, var: np.ndarray, e_geom: np.ndarray, f_ref: np.ndarray
+) -> tuple[float, float]:
+    """k = mean over pixels of L̃/(f_ref · cos θ_i/r²) and its standard error.
+
+    The standard error is the larger of the noise-model value √(Σ Var k_p)/N and the empirical
+    std/√N (which also sees any pixel-to-pixel error the noise model lacks, e.g. residual PRNU).
+    """
+    kp = radiance / (e_geom * f_ref)
+    var_kp = var / (e_geom * f_ref) ** 2
+    ok = np.isfinite(kp) & np.isfinite(var_kp)
+    kp, var_kp = kp[ok], var_kp[ok]
+    n = kp.size
+    if n < 2:
+        raise CalibrationFrameError("a reference capture has fewer than 2 usable pixels")
+    model = math.sqrt(float(var_kp.sum())) / n
+    empirical = float(np.std(kp, ddof=1)) / math.sqrt(n)
+    return float(kp.mean()), max(model, empirical)
+
+
+def combine_scales(values: np.ndarray, sigmas: np.ndarray) -> tuple[float, float, float]:
+    """Inverse-variance mean of per-pose k, its σ, and the Birge ratio √(χ²/dof) (≥ 1 applied):
+    if the poses scatter more than their errors allow, something pose-dependent (f_ref table,
+    geometry) is off, and the quoted σ must grow accordingly."""
+    w = 1.0 / np.square(sigmas)
+    mean = float(np.sum(w * values) / np.sum(w))
+    sigma = math.sqrt(1.0 / float(np.sum(w)))
+    birge = 1.0
+    if len(values) > 1:
+        chi2 = float(np.sum(w * np.square(values - mean)))
+        birge = max(1.0, math.sqrt(chi2 / (len(values) - 1)))
+    return mean, sigma * birge, birge
