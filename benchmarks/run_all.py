@@ -1,7 +1,9 @@
 """`make bench`: run every benchmarks/bench_*.py `main()` and print its figures.
 
 Speed is measured here, never asserted in tests. Each benchmark prints its own table; the
-figures quoted in docs/performance.md come from this command on a 2-core machine.
+figures quoted in docs/performance.md come from this command on a 2-core machine. Every
+bench_*.py is picked up; `make bench BENCH=bench_soak` runs one (the soak, issue 9, takes a few
+minutes; its figures are in docs/reliability.md).
 """
 
 from __future__ import annotations

@@ -15,6 +15,8 @@ __all__ = [
     "normalize",
     "reflect",
     "uniform_hemisphere",
+    "isotropic_gonio_directions",
+    "SPECULAR_OFFSETS_DEG",
 ]
 
 
@@ -64,3 +66,45 @@ def uniform_hemisphere(count: int, rng: np.random.Generator | int | None) -> np.
     phi = rng.uniform(0.0, 2.0 * np.pi, count)
     sin_t = np.sqrt(np.maximum(1.0 - cos_t * cos_t, 0.0))
     return np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
+
+
+#: In-plane offsets θ_o − θ_i (deg) of the specular scan in :func:`isotropic_gonio_directions`:
+#: 0.5° steps near the mirror (a Beckmann lobe with m = 0.03 falls to 1/e at |δ| ≈ 2m ≈ 3.4°
+#: in θ_o, since θ_h ≈ δ/2 in the plane, so ≥ 6 samples per side lie inside it), then widening
+#: steps that follow lobes up to m ≈ 0.6 (1/e at ≈ 70°).
+SPECULAR_OFFSETS_DEG = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 9.0, 13.0, 18.0, 25.0, 35.0, 50.0)
+
+
+def isotropic_gonio_directions(
+    theta_i_deg=(10.0, 25.0, 40.0, 55.0, 70.0),
+    specular_offsets_deg=SPECULAR_OFFSETS_DEG,
+    azimuth_offsets_deg=(0.5, 1.0, 2.0, 4.0, 8.0, 16.0),
+    coarse_theta_o_deg=(0.0, 15.0, 30.0, 45.0, 60.0, 75.0),
+    coarse_phi_o_deg=(0.0, 45.0, 90.0, 135.0),
+    max_theta_deg: float = 85.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Direction pairs (ω_i, ω_o), each (N, 3), of an isotropic gonioreflectometer plan.
+
+    The light sits at φ_i = 0 and each θ_i; per θ_i the camera visits (a) the incidence plane
+    (φ_o = π) at θ_o = θ_i ± δ for δ in ``specular_offsets_deg`` (negative θ_o continues the
+    plane through the normal to φ_o = 0), (b) out of the plane at θ_o = θ_i, φ_o = π ± Δφ for
+    Δφ in ``azimuth_offsets_deg``, and (c) a coarse hemisphere grid θ_o × φ_o for the diffuse
+    part. Directions with θ_o > ``max_theta_deg`` are dropped (a real arm cannot reach the
+    horizon); duplicates are removed.
+    """
+    rows = []
+    for ti in theta_i_deg:
+        for d in sorted({s * x for x in specular_offsets_deg for s in (1.0, -1.0)}):
+            to = ti + d
+            rows.append((ti, abs(to), 180.0 if to >= 0 else 0.0))
+        for dp in azimuth_offsets_deg:
+            rows.extend([(ti, ti, 180.0 + dp), (ti, ti, 180.0 - dp)])
+        for to in coarse_theta_o_deg:
+            for po in coarse_phi_o_deg:
+                rows.append((ti, to, po if to > 0 else 0.0))
+    a = np.unique(np.round(np.array(rows, dtype=np.float64), 9), axis=0)
+    a = a[a[:, 1] <= max_theta_deg]
+    t = np.radians(a)
+    wi = spherical_to_vector(t[:, 0], np.zeros(len(t)))
+    wo = spherical_to_vector(t[:, 1], t[:, 2])
+    return wi, wo

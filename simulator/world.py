@@ -19,6 +19,7 @@ from acquisition.kinematics import Kinematics
 from acquisition.rig import register_camera_backend
 from simulator.camera import SimCamera
 from simulator.dxl import EmulatedBus, register_bus
+from simulator.faults import CameraFaults, FaultyCamera
 from simulator.light import EmulatedLight, register_light
 from simulator.render import Renderer
 from simulator.scene import Scene
@@ -53,6 +54,9 @@ class SimWorld:
         )
         self._renderer = renderer
         self.camera: SimCamera | None = None
+        # Camera fault knob (a capture that returns no frame): the rig gets the SimCamera
+        # wrapped in a FaultyCamera that consults this; `self.camera` stays the bare device.
+        self.camera_faults = CameraFaults(rng)
         if rig.clock == "sim":
             register_clock("sim", self.clock)
         if (name := url_name(rig.bus.url, "dxlsim")) is not None:
@@ -85,7 +89,7 @@ class SimWorld:
         axes = self.true_axes_rad()
         return self.kinematics.light_position_m(axes), self.kinematics.camera_position_m(axes)
 
-    def _make_camera(self, rig: RigConfig, clock) -> SimCamera:  # noqa: ANN001 - factory signature
+    def _make_camera(self, rig: RigConfig, clock) -> FaultyCamera:  # noqa: ANN001 - factory
         if self.camera is None:
             self.camera = SimCamera(
                 self.scene,
@@ -95,4 +99,4 @@ class SimWorld:
                 readout_s=rig.camera.readout_s,
                 renderer=self._renderer,
             )
-        return self.camera
+        return FaultyCamera(self.camera, self.camera_faults)

@@ -10,107 +10,36 @@ a real SQLite manifest. The expected (pose, bracket) keys come from the plan's g
 
 from __future__ import annotations
 
-import itertools
-import math
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import pytest
 import tomli_w
+from _faults_util import (
+    ARRIVAL_RAD,
+    EXPECTED_KEYS,
+    PLAN,
+    REPO,
+    TICK_RAD,
+    assert_recorded,
+    expected_keys,
+    sim_session,
+)
+from _faults_util import assert_all_data as _assert_all_data
+from _faults_util import assert_safe as _safe_state
 
-from acquisition.config import PlanConfig, RigConfig, load_rig
+from acquisition.config import load_rig
 from acquisition.dynamixel import HardwareAlert
-from acquisition.plans import Plan, build_plan, park_targets
-from acquisition.rig import Rig, build_rig
-from acquisition.runner import RunOutcome, _StopFlag, run_acquisition
+from acquisition.plans import build_plan, park_targets
+from acquisition.rig import build_rig
+from acquisition.runner import _StopFlag, run_acquisition
 from acquisition.store import RunStore
 from gonio.backends import prepare_backends
 from simulator.dxl import ReplyFaults
-from simulator.dxl.transport import PtyTransport
 
-REPO = Path(__file__).resolve().parent.parent
-# 3 × 2 × 2 = 12 grid poses, all reachable (θ_i ≠ θ_o or Δφ ≠ 0: separation ≥ 5°).
-PLAN = PlanConfig(
-    name="faults",
-    theta_i_deg=(20.0, 40.0, 60.0),
-    theta_o_deg=(0.0, 30.0),
-    delta_phi_deg=(180.0, 90.0),
-    exposures_s=(0.002,),
-)
-
-
-def _expected_keys(plan: PlanConfig) -> set[tuple[int, int]]:
-    grid = itertools.product(plan.theta_i_deg, plan.theta_o_deg, plan.delta_phi_deg)
-    return {(i, b) for i, _ in enumerate(grid) for b in range(len(plan.exposures_s))}
-
-
-EXPECTED_KEYS = _expected_keys(PLAN)
 # 3 × 6 × 2 = 36 poses, all reachable: ≈ 500 status packets, so 1 % faults
 # occur (the test checks that retries happened).
 BIG_PLAN = PLAN.model_copy(update={"theta_o_deg": (0.0, 10.0, 30.0, 45.0, 65.0, 80.0)})
-TICK_RAD = 2 * math.pi / 4096
-# The driver's arrival tolerance is 8 ticks (DynamixelAxis.tolerance_ticks); gear ratio 1.
-ARRIVAL_RAD = 8 * TICK_RAD
-
-
-@dataclass
-class SimSession:
-    world: Any
-    transport: PtyTransport
-    config: RigConfig  # bus.url = the pty's slave path
-    store: RunStore
-    plan: Plan
-
-    def rig(self) -> Rig:
-        return build_rig(self.config)
-
-    def run(self, **kw: Any) -> RunOutcome:
-        rig = self.rig()
-        try:
-            return run_acquisition(self.store, rig, self.plan, progress=False, **kw)
-        finally:
-            rig.close()
-
-    def events(self) -> list[tuple[str, str]]:
-        return [(k, m) for _, k, m in self.store.events()]
-
-
-@contextmanager
-def sim_session(
-    tmp_path: Path, *, on_alert: str = "stop", plan: PlanConfig = PLAN
-) -> Iterator[SimSession]:
-    base = load_rig(REPO / "configs" / "rigs" / "sim.toml")
-    base = base.model_copy(update={"bus": base.bus.model_copy(update={"on_alert": on_alert})})
-    world = prepare_backends(base)  # registers clock "sim", the light and the sim camera
-    transport = PtyTransport(world.bus)
-    config = base.model_copy(
-        update={"bus": base.bus.model_copy(update={"url": transport.port_path})}
-    )
-    store = RunStore.create(tmp_path / "run", tomli_w.dumps({"note": "fault test"}))
-    try:
-        yield SimSession(world, transport, config, store, build_plan(config, plan))
-    finally:
-        store.close()
-        transport.close()
-        assert transport.error is None, transport.error
-
-
-def _safe_state(world: Any, config: RigConfig, skip_torque: set[int] = frozenset()) -> None:
-    assert not world.light.is_on
-    for a in config.axes:
-        if a.id not in skip_torque:
-            assert world.bus.servo(a.id).register("torque_enable") == 0, a.role
-
-
-def _assert_all_data(store: RunStore, expected: set[tuple[int, int]] = EXPECTED_KEYS) -> None:
-    keys = [(c.pose_index, c.bracket_index) for c in store.captures()]
-    assert len(keys) == len(set(keys))  # no duplicates
-    assert set(keys) == expected
-    assert store.verify() == []
-    assert store.complete
+_expected_keys = expected_keys
 
 
 def test_one_percent_packet_faults_complete_with_all_data(tmp_path: Path) -> None:
@@ -174,8 +103,13 @@ def test_light_that_fails_to_turn_on_stops_safely(tmp_path: Path) -> None:
         s.world.light.fail_to_turn_on = True
         out = s.run()
         assert not out.complete and "LAMP_FAIL" in out.reason
-        assert ("stop", out.reason) in s.events()
+        assert_recorded(s.store, out.reason)
         assert s.store.count("done") == 0
+        _safe_state(s.world, s.config)
+        s.world.light.fail_to_turn_on = False  # lamp replaced; the latched fault stays until CLR
+        out = s.run()
+        assert out.complete, out.reason
+        _assert_all_data(s.store)
         _safe_state(s.world, s.config)
 
 
@@ -190,6 +124,11 @@ def test_light_failing_mid_run_stops_before_the_next_pose(tmp_path: Path) -> Non
         out = s.run(on_capture=lamp_dies)
         assert not out.complete and "light is off" in out.reason and "LAMP_FAIL" in out.reason
         assert s.store.count("done") == 3
+        assert_recorded(s.store, out.reason)
+        _safe_state(s.world, s.config)
+        out = s.run()  # the lamp strikes again on resume
+        assert out.complete, out.reason
+        _assert_all_data(s.store)
         _safe_state(s.world, s.config)
 
 
@@ -207,8 +146,14 @@ def test_servo_that_stops_answering_stops_safely(tmp_path: Path) -> None:
         assert ("stop", out.reason) in s.events()
         assert s.store.count("done") == 2
         # Every other servo is safe; the dead one could not be told, and the manifest says so.
-        _safe_state(s.world, s.config, skip_torque={dead})
+        _safe_state(s.world, s.config, skip_torque=frozenset({dead}))
         assert any(k == "safe-stop" and "torque off failed" in m for k, m in s.events())
+        # Reconnected: the resume completes with nothing lost, and all four end unpowered.
+        s.world.bus.set_reply_faults(ReplyFaults(), servo_id=dead)
+        out = s.run()
+        assert out.complete, out.reason
+        _assert_all_data(s.store)
+        _safe_state(s.world, s.config)
 
 
 def test_interrupt_then_resume_over_pty(tmp_path: Path) -> None:

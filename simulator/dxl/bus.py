@@ -25,7 +25,7 @@ import numpy as np
 
 from acquisition.clock import Clock
 from simulator.dxl import protocol as P
-from simulator.dxl.faults import FaultInjector, Reply, ReplyFaults, ScheduledAlert
+from simulator.dxl.faults import FaultInjector, FiredAlert, Reply, ReplyFaults, ScheduledAlert
 from simulator.dxl.servo import (
     HW_ELECTRICAL_SHOCK,
     HW_ENCODER,
@@ -66,6 +66,7 @@ class EmulatedBus:
         self._decoder = P.PacketDecoder()
         self.packets_in = 0  # instruction packets received (for scheduled faults, stats)
         self.traffic: list[tuple[str, bytes]] | None = None  # set to [] to record the wire
+        self.fired_alerts: list[FiredAlert] = []  # scheduled alerts that have fired
 
     # -- setup ----------------------------------------------------------------------------
     def add_servo(self, dxl_id: int, model: str = "XM430-W350", **kwargs) -> Servo:
@@ -105,17 +106,22 @@ class EmulatedBus:
         at_time_s: float | None = None,
         after_packets: int | None = None,
         persistent: bool = False,
+        while_moving: bool = False,
     ) -> None:
         """Raise a hardware alert (name from ALERT_BITS or raw reg-70 bits): now, at a clock
-        time, or after N more instruction packets. `persistent` survives REBOOT until
-        `clear_fault(servo_id)`."""
+        time, after N more instruction packets, or (`while_moving`) at the first packet that
+        finds the servo mid-move (combinable with the others: then the first move after
+        them). `persistent` survives REBOOT until `clear_fault(servo_id)`."""
         bits = ALERT_BITS[kind] if isinstance(kind, str) else int(kind)
         with self.lock:
-            if at_time_s is None and after_packets is None:
+            if at_time_s is None and after_packets is None and not while_moving:
                 self.servos[servo_id].raise_hw_error(bits, persistent=persistent)
                 return
             after = None if after_packets is None else self.packets_in + after_packets
-            self.faults.schedule_alert(ScheduledAlert(servo_id, bits, at_time_s, after, persistent))
+            armed = self.clock.now() if while_moving else None
+            self.faults.schedule_alert(
+                ScheduledAlert(servo_id, bits, at_time_s, after, persistent, while_moving, armed)
+            )
 
     def clear_fault(self, servo_id: int) -> None:
         with self.lock:
@@ -134,11 +140,25 @@ class EmulatedBus:
         now = self.clock.now()
         keep = []
         for a in self.faults.alerts:
-            due = (a.at_time_s is not None and now >= a.at_time_s) or (
-                a.after_packets is not None and self.packets_in >= a.after_packets
+            servo = self.servos.get(a.servo_id)
+            timed = a.at_time_s is not None or a.after_packets is not None
+            due = not timed or (
+                (a.at_time_s is not None and now >= a.at_time_s)
+                or (a.after_packets is not None and self.packets_in >= a.after_packets)
             )
-            if due and a.servo_id in self.servos:
-                self.servos[a.servo_id].raise_hw_error(a.bits, persistent=a.persistent)
+            at_s = None
+            if a.while_moving and servo is not None:
+                # Halfway through the first move that starts once the alert is due. The host
+                # may not look during the move (with a virtual clock it sleeps through it), so
+                # the alert is dated to mid-move and the horn frozen where it was then.
+                mid = servo.mid_move_time(a.armed_at_s if a.armed_at_s is not None else now)
+                due = due and mid is not None and now >= mid
+                at_s = mid
+            if due and servo is not None:
+                moving, to_goal = servo.motion_state(at_s)
+                servo.raise_hw_error(a.bits, persistent=a.persistent, at_s=at_s)
+                t = now if at_s is None else at_s
+                self.fired_alerts.append(FiredAlert(a.servo_id, a.bits, t, moving, to_goal))
             else:
                 keep.append(a)
         self.faults.alerts = keep

@@ -29,6 +29,7 @@ __all__ = [
     "ReplyFaults",
     "Reply",
     "ScheduledAlert",
+    "FiredAlert",
     "FaultInjector",
 ]
 
@@ -69,6 +70,22 @@ class ScheduledAlert:
     at_time_s: float | None = None
     after_packets: int | None = None
     persistent: bool = False
+    # Fire only while the servo is mid-move (a profile under way, neither at its start nor
+    # arrived): an arm that jams or hits something trips on the way, not at rest.
+    while_moving: bool = False
+    armed_at_s: float | None = None  # while_moving: only moves starting from here count
+
+
+@dataclass(frozen=True)
+class FiredAlert:
+    """An injected alert as it fired, with the servo's state at that instant (the emulator's
+    truth, for tests that must show *when* it happened)."""
+
+    servo_id: int
+    bits: int
+    time_s: float
+    moving: bool  # a motion profile was under way
+    ticks_to_goal: float  # |goal - position| when it fired
 
 
 class FaultInjector:

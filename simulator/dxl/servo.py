@@ -317,9 +317,9 @@ class Servo:
             return self._pos, 0.0
         return self._profile.state(t)
 
-    def _freeze(self) -> None:
-        """Stop the horn where it is now (torque off, shutdown, stuck)."""
-        self._pos, _ = self._state(self.clock.now())
+    def _freeze(self, at_s: float | None = None) -> None:
+        """Stop the horn where it is now, or was at `at_s` (torque off, shutdown, stuck)."""
+        self._pos, _ = self._state(self.clock.now() if at_s is None else at_s)
         self._profile = None
 
     def _start_move(self, goal_internal: float) -> None:
@@ -330,6 +330,24 @@ class Servo:
             self._profile = None
             return
         self._profile = _Profile(p, goal_internal, now, self._v_ticks_s(), self._a_ticks_s2())
+
+    def mid_move_time(self, since_s: float) -> float | None:
+        """Clock time halfway through the current move, if one started at or after `since_s`
+        and covers some distance; else None."""
+        p = self._profile
+        if p is None or p.t0 < since_s or p.duration <= 0:
+            return None
+        return p.t0 + 0.5 * p.duration
+
+    def motion_state(self, at_s: float | None = None) -> tuple[bool, float]:
+        """(mid-move, |goal − position| in ticks) at `at_s` (default now): mid-move means a
+        profile has started and not yet arrived, so the horn is travelling."""
+        now = self.clock.now() if at_s is None else at_s
+        p = self._profile
+        pos, _ = self._state(now)
+        moving = p is not None and p.t0 < now < p.t0 + p.duration
+        goal = p.p1 if p is not None else self._pos
+        return moving, abs(goal - pos)
 
     def internal_position(self) -> float:
         return self._state(self.clock.now())[0]
@@ -380,15 +398,18 @@ class Servo:
             bits |= HW_INPUT_VOLTAGE
         self.raise_hw_error(bits)
 
-    def raise_hw_error(self, bits: int, persistent: bool = False) -> None:
+    def raise_hw_error(
+        self, bits: int, persistent: bool = False, at_s: float | None = None
+    ) -> None:
         """Latch hardware error bits (reg 70). Bits in Shutdown (63) turn torque off until
-        REBOOT. `persistent` bits come back after a reboot until `clear_fault` is called."""
+        REBOOT, stopping the horn where it is (or was at clock time `at_s`, for an alert dated
+        to the past). `persistent` bits come back after a reboot until `clear_fault`."""
         if persistent:
             self._persistent_hw_error |= bits
         new = bits & ~self._hw_error
         self._hw_error |= bits
         if new & self._get("shutdown") and self._get("torque_enable"):
-            self._freeze()
+            self._freeze(at_s)
             self._set("torque_enable", 0)
 
     def clear_fault(self) -> None:
