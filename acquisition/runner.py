@@ -138,10 +138,36 @@ class _Session:
     on_capture: Callable[[int], None] | None
     bar: Any
     t0: float
-    history: dict[int, list[CaptureRecord]]  # done captures per pose, by bracket
+    history: dict[int, list[_Done]]  # done captures per pose, by bracket
     stats: dict[tuple[int, int], FrameStats]
     captured: int = 0
     current_pose: int | None = None
+
+
+@dataclass(slots=True)
+class _Done:
+    """What the runner remembers of a done capture: only what resume and auto-exposure need.
+    A full `CaptureRecord` (devices, metadata) is ≈ 5 KiB; keeping those for every capture made
+    memory grow with run size (the 5000-capture soak found it)."""
+
+    pose_index: int
+    bracket_index: int
+    exposure_s: float
+    frame_path: str
+    axes_measured: dict[str, float]
+    levels: dict[str, Any] | None  # the stored sample-region stats, when there are any
+
+    @classmethod
+    def of(cls, rec: CaptureRecord) -> _Done:
+        levels = (rec.frame_meta or {}).get(LEVELS_META)
+        return cls(
+            rec.pose_index,
+            rec.bracket_index,
+            rec.exposure_s,
+            rec.frame_path,
+            rec.axes_measured,
+            levels,
+        )
 
 
 def _levels_of(ses: _Session, frame: Frame, axes_measured: dict[str, float]) -> Any:
@@ -155,19 +181,18 @@ def _levels_of(ses: _Session, frame: Frame, axes_measured: dict[str, float]) -> 
     return ses.frame_levels(frame, axes_measured)
 
 
-def _stats_of(ses: _Session, rec: CaptureRecord, cfg: PlanConfig) -> FrameStats:
+def _stats_of(ses: _Session, rec: _Done, cfg: PlanConfig) -> FrameStats:
     """A done capture's stats: stored with the frame, or (a frame adopted after a crash, whose
     row never got its metadata) recomputed from the file on disk."""
     key = (rec.pose_index, rec.bracket_index)
     if key in ses.stats:
         return ses.stats[key]
-    d = (rec.frame_meta or {}).get(LEVELS_META)
-    if d is not None:
-        st = FrameStats.from_dict(d)
+    if rec.levels is not None:
+        st = FrameStats.from_dict(rec.levels)
     else:
         path = ses.store.root / rec.frame_path
         try:
-            frame = Frame(path.read_bytes(), path.suffix.lower(), dict(rec.frame_meta or {}))
+            frame = Frame(path.read_bytes(), path.suffix.lower(), {})
             st = frame_stats(
                 _levels_of(ses, frame, rec.axes_measured), rec.exposure_s, cfg.auto_exposure
             )
@@ -239,7 +264,7 @@ def _capture(
     store.finish_capture(cid, frame.data, meta)
     write_s = time.perf_counter() - w0
     ses.history.setdefault(planned.index, []).append(
-        _record_stub(planned.index, b, exposure_s, cid, where["measured"], meta)
+        _Done(planned.index, b, exposure_s, "", where["measured"], meta.get(LEVELS_META))
     )
     if stats is not None:
         ses.stats[(planned.index, b)] = stats
@@ -259,30 +284,6 @@ def _capture(
     if level_error is not None:
         raise DeviceFault(level_error)
     return stats
-
-
-def _record_stub(
-    index: int, b: int, exposure_s: float, cid: int, measured: dict[str, float], meta: dict
-) -> CaptureRecord:
-    """The in-memory history entry of a capture just stored (what `captures()` would return)."""
-    return CaptureRecord(
-        id=cid,
-        pose_index=index,
-        bracket_index=b,
-        exposure_s=exposure_s,
-        theta_i=math.nan,
-        phi_i=math.nan,
-        theta_o=math.nan,
-        phi_o=math.nan,
-        axes_commanded={},
-        axes_measured=measured,
-        frame_path="",
-        sha256=None,
-        status="done",
-        devices={},
-        frame_meta=meta,
-        lab_time_s=None,
-    )
 
 
 def _run_phase(
@@ -427,9 +428,9 @@ def run_acquisition(
     if adopted:
         store.event("resume", f"adopted {adopted} frame(s) written before the interruption")
         log.emit("adopt", frames=adopted, reason="frames written before the interruption")
-    history: dict[int, list[CaptureRecord]] = {}
+    history: dict[int, list[_Done]] = {}
     for rec in store.captures("done"):
-        history.setdefault(rec.pose_index, []).append(rec)
+        history.setdefault(rec.pose_index, []).append(_Done.of(rec))
     done_before = store.count("done")
     t0 = clock.now()
     ses = _Session(store, rig, stop, log, frame_levels, on_capture, _NoBar(), t0, history, {})

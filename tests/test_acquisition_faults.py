@@ -107,10 +107,7 @@ def test_light_that_fails_to_turn_on_stops_safely(tmp_path: Path) -> None:
         assert s.store.count("done") == 0
         _safe_state(s.world, s.config)
         s.world.light.fail_to_turn_on = False  # lamp replaced; the latched fault stays until CLR
-        out = s.run()
-        assert out.complete, out.reason
-        _assert_all_data(s.store)
-        _safe_state(s.world, s.config)
+        s.resume_and_check()
 
 
 def test_light_failing_mid_run_stops_before_the_next_pose(tmp_path: Path) -> None:
@@ -126,10 +123,7 @@ def test_light_failing_mid_run_stops_before_the_next_pose(tmp_path: Path) -> Non
         assert s.store.count("done") == 3
         assert_recorded(s.store, out.reason)
         _safe_state(s.world, s.config)
-        out = s.run()  # the lamp strikes again on resume
-        assert out.complete, out.reason
-        _assert_all_data(s.store)
-        _safe_state(s.world, s.config)
+        s.resume_and_check()  # the lamp strikes again on resume
 
 
 def test_servo_that_stops_answering_stops_safely(tmp_path: Path) -> None:
@@ -150,10 +144,7 @@ def test_servo_that_stops_answering_stops_safely(tmp_path: Path) -> None:
         assert any(k == "safe-stop" and "torque off failed" in m for k, m in s.events())
         # Reconnected: the resume completes with nothing lost, and all four end unpowered.
         s.world.bus.set_reply_faults(ReplyFaults(), servo_id=dead)
-        out = s.run()
-        assert out.complete, out.reason
-        _assert_all_data(s.store)
-        _safe_state(s.world, s.config)
+        s.resume_and_check()
 
 
 def test_interrupt_then_resume_over_pty(tmp_path: Path) -> None:
