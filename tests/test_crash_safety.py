@@ -105,3 +105,28 @@ def test_kill_9_ten_times_then_complete(tmp_path: Path) -> None:
         assert abs(c.theta_o - math.radians(to)) <= ARRIVAL_RAD
         dphi = (c.phi_o - c.phi_i) % (2 * math.pi)
         assert abs(dphi - math.radians(dp)) <= 2 * ARRIVAL_RAD
+
+    # And the same set as an uninterrupted run of the same plan on a fresh rig (the acceptance
+    # item's literal comparison): identical (pose, bracket) keys, and each pose's measured
+    # angles agree within twice the arrival tolerance (each run lands anywhere inside it).
+    ref_out = tmp_path / "uninterrupted"
+    ref_state = tmp_path / "ref_state.json"
+    res = subprocess.run(
+        acquire_cmd(rig_path, plan_path, ref_out, tmp_path / "tty_ref", ref_state),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert res.returncode == 0, res.stderr
+    ref = RunStore.open(ref_out)
+    try:
+        ref_caps = {(c.pose_index, c.bracket_index): c for c in ref.captures()}
+    finally:
+        ref.close()
+    got = {(c.pose_index, c.bracket_index): c for c in captures}
+    assert set(got) == set(ref_caps)
+    for key, c in got.items():
+        r = ref_caps[key]
+        for a, b in ((c.theta_i, r.theta_i), (c.theta_o, r.theta_o)):
+            assert abs(a - b) <= 2 * ARRIVAL_RAD, key
+    store.close()

@@ -132,7 +132,9 @@ def test_area_lamp_widens_the_glossy_lobe(rows) -> None:
     #     m_eff² ≈ m² + ρ²/8.
     # Small-angle, near-normal estimate (ignores the 1/cos² growth of slope with θ_h and the
     # foreshortened lamp), hence a factor-2.5 band either way.
-    d = 0.5  # configs/rigs/sim.toml light_distance_m
+    from acquisition.config import load_rig
+
+    d = load_rig(REPO / "configs" / "rigs" / "sim.toml").geometry.light_distance_m
     rho = AREA_LAMP_RADIUS_M / d
     sp = {(s["material"], s["spp"]): s for s in spp_summary(rows, "m")}
     glossy = [s for k, s in sp.items() if k[0] == "glossy"]
