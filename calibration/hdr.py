@@ -10,13 +10,20 @@ with w_i = 0 where saturated. The weights depend on Φ̂, so we start from the l
 exposure and iterate twice. Here signals are in electrons, so the gain g = 1. σ_read² may differ
 per bracket (a dark frame's temporal variance grows with exposure through dark-current shot
 noise): pass one value per bracket.
+
+`merge_brackets_local` is the merge a reduction uses on images: the weights, the variance and
+the choice of brackets come from each pixel's neighbours (a 3×3 same-colour mean without the
+pixel itself), never from the pixel's own noisy value. Anything computed from the pixel's own
+value and then used to weight or select that value is correlated with its noise, and the merged
+flux (or a fit weighted by its σ) is biased by O(1/N_electrons), most of all next to the clip
+level, where the long exposure survives only when it fluctuated low.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["merge_brackets"]
+__all__ = ["merge_brackets", "merge_brackets_local", "local_mean"]
 
 
 def merge_brackets(
@@ -70,3 +77,82 @@ def merge_brackets(
         wsum = w.sum(axis=0)
     var = np.divide(1.0, wsum, out=np.full_like(phi, np.inf), where=wsum > 0)
     return phi, var, all_sat
+
+
+def merge_brackets_local(
+    electrons: list[np.ndarray],
+    exposures_s: list[float],
+    saturated: list[np.ndarray],
+    read_noise_e: float | list[float] | np.ndarray,
+    clip_e: float | list[float | np.ndarray],
+    *,
+    valid: np.ndarray | None = None,
+    cfa: bool = False,
+    margin_sigma: float = 5.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge an image's brackets with weights, variance and bracket choice from the neighbours.
+
+    → (flux e/s, variance (e/s)², all_saturated mask), like `merge_brackets`.
+
+    ``saturated``: per bracket, the pixels at the camera's clip level (their value is unknown).
+    ``clip_e``: that clip level in the same electrons as ``electrons`` (after black or dark
+    subtraction): a scalar, or one value or per-pixel map per bracket (a master dark's level
+    varies per pixel and exposure, and the clip sits at white − dark). ``valid``: pixels whose
+    flux may enter their neighbours' local estimate (e.g. the ones on the sample: holder or
+    background neighbours would pull an edge pixel's estimate down and understate its
+    variance); None = all. ``cfa``: the frames are a 2×2 colour mosaic (neighbours are the
+    same-colour photosites).
+
+    Steps: (1) a first merge (`merge_brackets`, own-value weights) gives every pixel a flux;
+    (2) each pixel's reference flux is the mean of its neighbours' (`local_mean`), independent
+    of its own noise; (3) a bracket whose expected signal Φ_ref·t_i is within ``margin_sigma``
+    σ of the clip, Φ_ref t_i + k √(Φ_ref t_i + σ_read,i²) ≥ clip, is dropped whatever the
+    pixel's own value (values at the clip are always dropped): dropping it only when the
+    pixel's own value crossed the clip keeps it exactly when it fluctuated low; (4) the final
+    merge weights the kept brackets by w_i = t_i²/(Φ_ref t_i + σ_read,i²) and reports
+    Var = 1/Σ w_i at Φ_ref (Hasinoff et al. 2010). Given the neighbours, the weights are
+    constants, so the merged flux is an unbiased mean of unbiased bracket estimates.
+    """
+    t = np.asarray(exposures_s, dtype=np.float64)
+    read_e = np.broadcast_to(np.asarray(read_noise_e, dtype=np.float64), t.shape)
+    flux, _var, all_sat = merge_brackets(electrons, exposures_s, saturated, read_e)
+    ok = ~all_sat
+    if valid is not None:
+        valid = np.asarray(valid, dtype=bool)
+        if valid.ndim < flux.ndim:  # a (H, W) mask for (H, W, C) frames
+            valid = np.broadcast_to(valid[..., None], flux.shape)
+        ok = ok & valid
+    local = local_mean(flux, ok, cfa=cfa)
+    ref = np.maximum(np.where(np.isfinite(local), local, flux), 0.0)
+    clips = clip_e if isinstance(clip_e, list | tuple) else [clip_e] * t.size
+    if len(clips) != t.size:
+        raise ValueError(f"clip_e: {len(clips)} values for {t.size} brackets")
+    sats = []
+    for i, ti in enumerate(t):
+        expected = ref * ti
+        near = expected + margin_sigma * np.sqrt(expected + read_e[i] ** 2) >= clips[i]
+        sats.append(np.asarray(saturated[i], dtype=bool) | near)
+    return merge_brackets(electrons, exposures_s, sats, read_e, flux_for_weights=local)
+
+
+def local_mean(flux: np.ndarray, valid: np.ndarray, *, cfa: bool) -> np.ndarray:
+    """Mean flux of each pixel's same-colour 3×3 neighbourhood, the pixel itself excluded
+    (so the estimate is independent of its own noise); NaN where no valid neighbour exists.
+    ``flux`` is (H, W) or (H, W, C); with ``cfa`` the four 2×2 mosaic phases are separate."""
+    from scipy.ndimage import uniform_filter
+
+    out = np.full(flux.shape, np.nan)
+    planes = (
+        [(slice(i, None, 2), slice(j, None, 2)) for i in (0, 1) for j in (0, 1)]
+        if cfa
+        else [(slice(None), slice(None))]
+    )
+    for sl in planes:
+        f = np.where(valid[sl], flux[sl], 0.0)
+        v = valid[sl].astype(np.float64)
+        size = (3, 3) + (1,) * (f.ndim - 2)
+        tot = uniform_filter(f, size=size, mode="constant") * 9.0 - f
+        cnt = uniform_filter(v, size=size, mode="constant") * 9.0 - v
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[sl] = np.where(cnt > 0.5, tot / np.maximum(cnt, 1e-12), np.nan)
+    return out

@@ -44,7 +44,7 @@ from calibration.darks import CalibrationFrameError, load_darks
 from calibration.decode import FrameError, decode_frame
 from calibration.flatfield import load_flat
 from calibration.geometry import Intrinsics, pixel_geometry, project_points
-from calibration.hdr import merge_brackets
+from calibration.hdr import merge_brackets_local
 from calibration.radiometry import CameraRadiometry, surface_irradiance
 from calibration.reference import (
     ReferenceScale,
@@ -355,7 +355,8 @@ def _merge_pose(decoded, exposures, radiometry, darks, flat, on_sample=None):
     all-brackets-saturated mask, in the frames' own layout.
     """
     k = radiometry.gain_e_per_dn
-    electrons, sats, noise_sd = [], [], []
+    electrons, sats, noise_sd, clip_e = [], [], [], []
+    white = radiometry.white_level_dn
     shape = decoded[0].dn.shape
     for d, t in zip(decoded, exposures, strict=True):
         dn = np.asarray(d.dn, dtype=np.float64)
@@ -369,64 +370,32 @@ def _merge_pose(decoded, exposures, radiometry, darks, flat, on_sample=None):
             except CalibrationFrameError as exc:
                 raise CalibrationError(str(exc)) from None
             electrons.append((dn - dark.dn) * k)
+            clip_e.append((white - dark.dn) * k)  # the clip in dark-subtracted electrons
             # Signal-independent variance: the frame's own (measured) dark noise plus that of
             # the master subtracted from it.
             noise_sd.append(k * math.sqrt(dark.temporal_var_dn2 + dark.master_var_dn2))
         else:
             electrons.append(radiometry.electrons(dn))
+            clip_e.append((white - radiometry.black_level_dn) * k)
             noise_sd.append(math.sqrt(radiometry.read_noise_e**2 + k**2 / 12.0))
-    flux, var, all_sat = merge_brackets(electrons, exposures, sats, np.asarray(noise_sd))
-    # Second pass: weights and variance from the neighbours' flux, not the pixel's own noisy
-    # value (see merge_brackets: an own-value variance biases the fit by O(1/N_electrons)).
-    # Neighbours off the sample (holder, background) must not enter the local estimate: at the
-    # edge they would pull it down and understate the variance of edge pixels.
-    valid = ~all_sat if on_sample is None else ~all_sat & _broadcast_mask(on_sample, flux)
-    local = _local_mean(flux, valid, cfa=decoded[0].channels == "CFA")
-    # Which brackets to trust is decided from the neighbours' flux too. Dropping a bracket only
-    # when the pixel's own value crossed the clip level is a selection on its noise: near the
-    # threshold the long exposure survives only when it fluctuated low, biasing the flanks of
-    # a specular peak low. A bracket whose expected signal is within 5σ of the clip level is
-    # dropped whatever its own value (values at the clip are always dropped).
-    clip_e = (radiometry.white_level_dn - radiometry.black_level_dn) * k
-    ref = np.where(np.isfinite(local), local, flux)
-    for i, t in enumerate(exposures):
-        expected = np.maximum(ref, 0.0) * t
-        near = expected + 5.0 * np.sqrt(expected + noise_sd[i] ** 2) >= clip_e
-        sats[i] = sats[i] | near
-    flux, var, all_sat = merge_brackets(
-        electrons, exposures, sats, np.asarray(noise_sd), flux_for_weights=local
+    # Weights, variance and the choice of brackets from the neighbours' flux, never the pixel's
+    # own noisy value (calibration.hdr.merge_brackets_local: own-value weights and saturation
+    # tests bias the flux and any σ-weighted fit by O(1/N_electrons)). Off-sample neighbours
+    # (holder, background) do not enter the local estimate.
+    flux, var, all_sat = merge_brackets_local(
+        electrons,
+        exposures,
+        sats,
+        np.asarray(noise_sd),
+        clip_e,
+        valid=on_sample,
+        cfa=decoded[0].channels == "CFA",
     )
     if flat is not None:
         if flat.gain.shape != flux.shape:
             raise CalibrationError(f"flat field shape {flat.gain.shape} ≠ frame {flux.shape}")
         flux, var = flat.apply(flux, var)
     return flux, var, all_sat
-
-
-def _broadcast_mask(mask: np.ndarray, like: np.ndarray) -> np.ndarray:
-    return mask if like.ndim == mask.ndim else np.broadcast_to(mask[..., None], like.shape)
-
-
-def _local_mean(flux: np.ndarray, valid: np.ndarray, *, cfa: bool) -> np.ndarray:
-    """Mean flux of each pixel's same-colour 3×3 neighbourhood, the pixel itself excluded
-    (so the estimate is independent of its own noise); NaN where no valid neighbour exists."""
-    from scipy.ndimage import uniform_filter
-
-    out = np.full(flux.shape, np.nan)
-    planes = (
-        [(slice(i, None, 2), slice(j, None, 2)) for i in (0, 1) for j in (0, 1)]
-        if cfa
-        else [(slice(None), slice(None))]
-    )
-    for sl in planes:
-        f = np.where(valid[sl], flux[sl], 0.0)
-        v = valid[sl].astype(np.float64)
-        size = (3, 3) + (1,) * (f.ndim - 2)
-        tot = uniform_filter(f, size=size, mode="constant") * 9.0 - f
-        cnt = uniform_filter(v, size=size, mode="constant") * 9.0 - v
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out[sl] = np.where(cnt > 0.5, tot / np.maximum(cnt, 1e-12), np.nan)
-    return out
 
 
 def _monitor_factor(recs, level: float) -> float:

@@ -142,6 +142,9 @@ def fit_samples(
         space.energy_prior = albedo_prior(model, space)
     lik = Likelihood(model, table, space, kind=likelihood, nu=nu, censor=censor, channels=channels)
     lsq = fit_least_squares(lik, weighting=weighting, loss=loss, n_starts=n_starts, seed=seed)
+    # The fractional discrepancy scales with the least-squares prediction, frozen (see
+    # fitting.likelihood: a θ-dependent scale rewards overshooting, a measured one biases).
+    lik.set_discrepancy_reference(lsq.x)
     x_lsq = _best_discrepancy(lik, lsq.x)
 
     out_dir = Path(out_dir) if out_dir is not None else None

@@ -74,6 +74,37 @@ def test_discrepancy_and_student_t_match_scipy():
     )
 
 
+def test_frozen_discrepancy_reference_matches_scipy_and_penalises_overshoot():
+    rng = np.random.default_rng(5)
+    t = _lambert_case(rng)
+    model = models.get("lambert")
+    space = _space(model, ["R", "G"], discrepancy=True)
+    s = 0.07
+    ref_kd = {"R": 0.40, "G": 0.30}  # where the reference is frozen (an LSQ optimum, say)
+    gauss = Likelihood(model, t, space)
+    gauss.set_discrepancy_reference(np.array([ref_kd["R"], ref_kd["G"], np.log(s)]))
+    ref = np.array([ref_kd[c] / np.pi for c in t.channel])
+    for kd in ({"R": 0.41, "G": 0.27}, {"R": 1.0, "G": 0.95}):
+        mu = np.array([kd[c] / np.pi for c in t.channel])
+        # The scale uses the frozen reference, not the θ being evaluated.
+        scale = np.sqrt(t.sigma**2 + (s * ref) ** 2)
+        want = stats.norm.logpdf(t.f, mu, scale).sum()
+        got = gauss.log_prob(np.array([kd["R"], kd["G"], np.log(s)]))
+        assert got == pytest.approx(want, rel=1e-11)
+    # Overshooting (×2.4 and ×3.5, at the prior's edge) now costs quadratically in the excess;
+    # with the θ-dependent scale (reference released) the scale grows with the overshoot and
+    # caps the cost near N·(1/(2s²)) + Σ ln f̂ — far cheaper.
+    over = np.array([1.0, 0.95, np.log(s)])
+    frozen = gauss.log_prob(over)
+    gauss.set_discrepancy_reference(None)
+    floating = gauss.log_prob(over)
+    mu = np.array([{"R": 1.0, "G": 0.95}[c] / np.pi for c in t.channel])
+    assert floating == pytest.approx(
+        stats.norm.logpdf(t.f, mu, np.sqrt(t.sigma**2 + (s * mu) ** 2)).sum(), rel=1e-11
+    )
+    assert frozen < floating - 1000
+
+
 def test_censoring_and_exclusion_match_scipy():
     rng = np.random.default_rng(2)
     n = 40
