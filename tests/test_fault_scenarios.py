@@ -16,6 +16,7 @@ Where each scenario is tested (the real dynamixel_sdk over a pty in all of them)
 | disk full (manifest)      | here: test_disk_full_for_the_manifest_... (SQLITE_FULL)      |
 | SIGTERM, SIGINT           | here: test_signal_to_gonio_acquire_... (CLI subprocess)      |
 | kill -9                   | test_crash_safety (10 kills over 200 poses, CLI subprocess)  |
+| a bug (any other error)   | here: test_a_bug_in_the_loop_... (safe first, then raised)   |
 
 A servo that stops answering cannot be told to drop torque; its test shows the other three
 are unpowered and that the failed torque-off is recorded. After kill -9 nothing can make the
@@ -234,3 +235,22 @@ def test_signal_to_gonio_acquire_stops_safely_and_resumes(tmp_path: Path, sig) -
         assert_all_data(store)
     finally:
         store.close()
+
+
+def test_a_bug_in_the_loop_still_makes_the_rig_safe_then_surfaces(tmp_path: Path) -> None:
+    # Not a device fault but a programming error (here: the camera wrapper raises a
+    # RuntimeError): the runner must not guess, so the exception propagates — but only after
+    # the lamp is off and torque is off, and the reason is in the manifest.
+    with sim_session(tmp_path) as s:
+        n = 2
+
+        def bug(k: int) -> None:
+            if k == n:
+                raise RuntimeError("simulated bug")
+
+        with pytest.raises(RuntimeError, match="simulated bug"):
+            s.run(on_capture=bug)
+        assert s.store.count("done") == n and s.store.count("pending") == 0
+        assert_recorded(s.store, "internal error: RuntimeError: simulated bug")
+        assert_safe(s.world, s.config)
+        s.resume_and_check()
