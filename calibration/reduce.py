@@ -277,16 +277,22 @@ def _reduce_open_run(
     finally:
         if bar is not None:
             bar.stop()
+    if not cols:
+        # One line, no warnings before it: the error names the first frame that failed.
+        if skipped and len(skipped) == sum(len(r) for r in by_pose.values()):
+            raise CalibrationError(f"{run_dir}: no frame could be decoded ({skipped[0]['reason']})")
+        raise CalibrationError(f"{run_dir}: no pixel of any frame falls on the sample")
     if skipped:
+        # Warned only once the reduction has succeeded (the frames are counted in the Parquet
+        # metadata too); a handful are named, then the count.
+        for rec in skipped[:5]:
+            msg = f"warning: skipping capture {rec['capture_id']}: {rec['reason']}"
+            print(msg, file=sys.stderr)
         print(
             f"warning: {len(skipped)} capture(s) skipped (unreadable frames), "
             f"first {skipped[0]['frame']}",
             file=sys.stderr,
         )
-    if not cols:
-        if skipped and len(skipped) == sum(len(r) for r in by_pose.values()):
-            raise CalibrationError(f"{run_dir}: no frame could be decoded ({skipped[0]['reason']})")
-        raise CalibrationError(f"{run_dir}: no pixel of any frame falls on the sample")
     cat = {k: np.concatenate(v) for k, v in cols.items()}
     table = SampleTable(
         theta_i=cat["theta_i"],
@@ -344,7 +350,6 @@ def _decode_pose(recs, run_dir, skipped):
             good.append(r)
         except FrameError as exc:
             skipped.append({"capture_id": int(r.id), "frame": r.frame_path, "reason": str(exc)})
-            print(f"warning: skipping capture {r.id}: {exc}", file=sys.stderr)
     return good, decoded
 
 
