@@ -35,7 +35,7 @@ from acquisition.dynamixel import DynamixelBus, DynamixelCommError, DynamixelErr
 from acquisition.light import LightError, SerialLight
 from simulator.dxl import EmulatedBus, register_bus, unregister_bus
 from simulator.dxl import protocol as P
-from simulator.dxl.fuzzing import Hang, MangledReplies, watchdog
+from simulator.dxl.fuzzing import MANGLE_KINDS, Hang, MangledReplies, mangle_reply, watchdog
 from simulator.light import EmulatedLight, register_light, unregister_light
 
 __all__ = ["main", "fuzz_emulator", "fuzz_driver", "fuzz_light"]
@@ -157,57 +157,11 @@ def fuzz_emulator(n_packets: int, seed: int = 0) -> dict:
     }
 
 
-MANGLES = (
-    "keep",
-    "drop",
-    "truncate",
-    "flip",
-    "crc",
-    "refix",
-    "refix_len",
-    "refix_err",
-    "garbage_before",
-    "garbage_after",
-    "duplicate",
-    "random",
-)
-
-
 def mangle(rng: np.random.Generator, pkt: bytes) -> tuple[str, bytes]:
-    kind = MANGLES[int(rng.integers(0, len(MANGLES)))]
-    b = bytearray(pkt)
-    if kind == "keep":
-        return kind, pkt
-    if kind == "drop":
-        return kind, b""
-    if kind == "truncate":
-        return kind, pkt[: int(rng.integers(0, len(pkt)))]
-    if kind == "flip":
-        return kind, _flip(rng, pkt, int(rng.integers(1, 4)))
-    if kind == "crc":
-        b[-1] ^= int(rng.integers(1, 256))
-        return kind, bytes(b)
-    if kind in ("refix", "refix_len", "refix_err"):
-        # mutate, then re-fix the CRC so the SDK accepts it and the driver has to judge it
-        if kind == "refix":
-            b[int(rng.integers(4, len(b) - 2))] = int(rng.integers(0, 256))
-        elif kind == "refix_len":
-            body = bytes(b[8:-2]) + _bytes(rng, int(rng.integers(0, 8)))
-            b = bytearray(b[:7]) + b"\x55" + body[: int(rng.integers(0, 40))]
-            b[5:7] = (len(b) - 7 + 2).to_bytes(2, "little")
-            b += b"\0\0"
-        else:
-            b[8] = int(rng.integers(0, 256))
-        crc = P.crc16(b[:-2])
-        b[-2], b[-1] = crc & 0xFF, crc >> 8
-        return kind, bytes(b)
-    if kind == "garbage_before":
-        return kind, _bytes(rng, int(rng.integers(1, 21))) + pkt
-    if kind == "garbage_after":
-        return kind, pkt + _bytes(rng, int(rng.integers(1, 21)))
-    if kind == "duplicate":
-        return kind, pkt + pkt
-    return kind, _bytes(rng, int(rng.integers(0, 31)))
+    """The tests' rewrite (simulator.dxl.fuzzing.mangle_reply), its choices drawn by `rng`."""
+    kind = MANGLE_KINDS[int(rng.integers(0, len(MANGLE_KINDS)))]
+    nums = [int(x) for x in rng.integers(0, 2**16, 3)]
+    return kind, mangle_reply(kind, nums, _bytes(rng, int(rng.integers(0, 21))), pkt)
 
 
 DRIVER_OPS = (

@@ -163,8 +163,9 @@ def acquire(
             store = RunStore.create(out, tomli_w.dumps(doc))
         if world is not None:
             _record_sim_calibration_frames(out, world, plan_exposures_s(plan_cfg))
+        frozen_now = store.run_config()  # parsed once: camera and sample as frozen
         levels = sample_levels_decoder(
-            store.run_config()["camera"], rig, float(store.run_config()["sample"]["size_m"])
+            frozen_now["camera"], rig, float(frozen_now["sample"]["size_m"])
         )
         with stop_requests() as flag:
             outcome = run_acquisition(

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from simulator.bsdf_eval import eval_fr
 from simulator.materials import material_dict, model_bsdfs_alive, needs_wavefront
 from simulator.scene import Scene
 from simulator.variant import ensure_variant
@@ -404,50 +405,9 @@ class Renderer:
         return {"point_m": p, "wi": wi, "wo": wo, "r_light_m": r_light, "on_sample": on}
 
     def truth_bsdf(self, wi, wo) -> np.ndarray:
-        """Ground-truth f_r (N, 3) in sr⁻¹ from Mitsuba's own BSDF of the loaded material.
-
-        ``wi`` points to the light, ``wo`` to the camera (sample frame, unit vectors (N, 3)).
-        Mitsuba's ``bsdf.eval(ctx, si, w)`` returns f_r(si.wi, w)·cos θ_w; the renderer calls it
-        with si.wi = towards the camera and w = towards the light, so we do the same and divide
-        by cos θ_i. Below the horizon (either cosine ≤ 0) f_r = 0.
-        """
-        mi = self._mi
-        wi = np.atleast_2d(np.asarray(wi, float))
-        wo = np.atleast_2d(np.asarray(wo, float))
-        n = wi.shape[0]
-        if self.variant.startswith("scalar"):
-            out = np.zeros((n, 3))
-            for j in range(n):
-                out[j] = self._eval_one(wi[j], wo[j])
-        else:
-            si = mi.SurfaceInteraction3f()
-            si.p = mi.Point3f(0.0, 0.0, 0.0)
-            si.n = mi.Normal3f(0.0, 0.0, 1.0)
-            si.sh_frame = mi.Frame3f(
-                mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0)
-            )
-            si.uv = mi.Point2f(0.5, 0.5)
-            si.wi = mi.Vector3f(wo[:, 0], wo[:, 1], wo[:, 2])
-            ctx = mi.BSDFContext()
-            val = self._bsdf.eval(ctx, si, mi.Vector3f(wi[:, 0], wi[:, 1], wi[:, 2]))
-            out = np.stack([np.asarray(val[c], float) for c in range(3)], axis=-1)
-            out = np.broadcast_to(out, (n, 3)).copy()
-        cos_i = wi[:, 2]
-        valid = (cos_i > 0) & (wo[:, 2] > 0)
-        f = np.zeros((n, 3))
-        f[valid] = out[valid] / cos_i[valid, None]
-        return f
-
-    def _eval_one(self, wi, wo):
-        mi = self._mi
-        si = mi.SurfaceInteraction3f()
-        si.p = mi.Point3f(0.0, 0.0, 0.0)
-        si.n = mi.Normal3f(0.0, 0.0, 1.0)
-        si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
-        si.uv = mi.Point2f(0.5, 0.5)
-        si.wi = mi.Vector3f(*wo)
-        val = self._bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*wi))
-        return np.array([val[0], val[1], val[2]], float)
+        """Ground-truth f_r (N, 3) in sr⁻¹ from Mitsuba's own BSDF of the loaded material
+        (simulator.bsdf_eval: ``wi`` to the light, ``wo`` to the camera; 0 below the horizon)."""
+        return eval_fr(self._bsdf, wi, wo, self.variant)
 
 
 @dataclass

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from simulator.bsdf_eval import eval_fr
 from simulator.materials import material_dict, model_bsdfs_alive, needs_wavefront
 from simulator.scene import (
     BlendMaterial,
@@ -146,52 +147,13 @@ def mitsuba_brdf(material, wi, wo, variant: str | None = None) -> np.ndarray:
     cos θ_i (DESIGN §3). Mitsuba runs in float32: pass directions that are exactly float32
     values if the comparison must not see their rounding. Below the horizon f_r = 0.
     """
-    import drjit as dr
     import mitsuba as mi
 
     variant = _set_variant(variant)
-    wi = np.atleast_2d(np.asarray(wi, dtype=np.float64))
-    wo = np.atleast_2d(np.asarray(wo, dtype=np.float64))
     bsdf = mi.load_dict(material_dict(material))
-    ctx = mi.BSDFContext()
-    n = wi.shape[0]
-
-    def frame(si):
-        si.sh_frame = mi.Frame3f(
-            mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0)
-        )
-        si.n = mi.Normal3f(0.0, 0.0, 1.0)
-        si.uv = mi.Point2f(0.5, 0.5)
-        return si
-
-    if variant.startswith("scalar"):
-        out = np.zeros((n, 3))
-        si = frame(mi.SurfaceInteraction3f())
-        for j in range(n):
-            si.wi = mi.Vector3f(*wo[j])
-            v = bsdf.eval(ctx, si, mi.Vector3f(*wi[j]))
-            out[j] = [v[0], v[1], v[2]]
-    else:
-        si = frame(dr.zeros(mi.SurfaceInteraction3f, n))
-        si.wi = mi.Vector3f(wo[:, 0], wo[:, 1], wo[:, 2])
-        w = mi.Vector3f(wi[:, 0], wi[:, 1], wi[:, 2])
-        # A Python-model BSDF needs concrete arrays (wavefront mode), see simulator.materials.
-        if needs_wavefront(material) or model_bsdfs_alive():
-            with (
-                dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, False),
-                dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False),
-            ):
-                v = bsdf.eval(ctx, si, w)
-                dr.eval(v)
-        else:
-            v = bsdf.eval(ctx, si, w)
-        out = np.stack([np.asarray(v[c], dtype=np.float64) for c in range(3)], axis=-1)
-        out = np.broadcast_to(out, (n, 3)).copy()
-    cos_i = wi[:, 2]
-    valid = (cos_i > 0) & (wo[:, 2] > 0)
-    f = np.zeros((n, 3))
-    f[valid] = out[valid] / cos_i[valid, None]
-    return f
+    # A Python-model BSDF needs concrete arrays (wavefront mode), see simulator.materials.
+    wavefront = needs_wavefront(material) or model_bsdfs_alive()
+    return eval_fr(bsdf, wi, wo, variant, wavefront=wavefront)
 
 
 def direct_samples(

@@ -39,7 +39,7 @@ from acquisition.dynamixel import (
 from acquisition.light import LightError, SerialLight
 from simulator.dxl import EmulatedBus, register_bus, unregister_bus
 from simulator.dxl import protocol as P
-from simulator.dxl.fuzzing import MangledReplies, watchdog
+from simulator.dxl.fuzzing import MANGLE_KINDS, MangledReplies, mangle_reply, watchdog
 from simulator.light import EmulatedLight, register_light, unregister_light
 
 SDK = PacketHandler(2.0)
@@ -296,20 +296,6 @@ def test_light_emulator_answers_every_line_in_ascii(lines) -> None:
 # ---- driver side ---------------------------------------------------------------------------
 
 
-MANGLE_KINDS = [
-    "keep",
-    "drop",
-    "truncate",
-    "flip",
-    "crc",
-    "refix",
-    "refix_len",
-    "refix_err",
-    "garbage_before",
-    "garbage_after",
-    "duplicate",
-    "random",
-]
 # A rewrite, drawn before the call so the draws never depend on how many replies the driver
 # asks for (which may depend on timing under load): (kind, numbers, bytes), see `mangle`.
 mangle_specs = st.tuples(
@@ -320,42 +306,8 @@ mangle_specs = st.tuples(
 
 
 def mangle(spec, pkt: bytes) -> bytes:
-    kind, (u, v, w), blob = spec
-    b = bytearray(pkt)
-    if kind == "keep":
-        return pkt
-    if kind == "drop":
-        return b""
-    if kind == "truncate":
-        return pkt[: u % len(pkt)]
-    if kind == "flip":
-        for pos in (u, v, w)[: 1 + w % 3]:
-            b[(pos // 8) % len(b)] ^= 1 << (pos % 8)
-        return bytes(b)
-    if kind == "crc":
-        b[-1] ^= 1 + u % 255
-        return bytes(b)
-    if kind in ("refix", "refix_len", "refix_err"):
-        # mutate, then give it a *correct* CRC so the SDK accepts it and the driver must judge
-        if kind == "refix":
-            b[4 + u % (len(b) - 6)] = v & 0xFF
-        elif kind == "refix_len":
-            body = (bytes(b[8:-2]) + blob)[: u % 41]
-            b = bytearray(b[:7]) + b"\x55" + body
-            b[5:7] = (len(b) - 7 + 2).to_bytes(2, "little")
-            b += b"\0\0"
-        else:
-            b[8] = u & 0xFF  # error byte: any error number, alert bit
-        crc = SDK.updateCRC(0, list(b), len(b) - 2)
-        b[-2], b[-1] = crc & 0xFF, crc >> 8
-        return bytes(b)
-    if kind == "garbage_before":
-        return (blob or b"\x00") + pkt
-    if kind == "garbage_after":
-        return pkt + (blob or b"\xff")
-    if kind == "duplicate":
-        return pkt + pkt
-    return blob
+    kind, nums, blob = spec
+    return mangle_reply(kind, nums, blob, pkt)
 
 
 class Scripted:
