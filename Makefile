@@ -3,11 +3,14 @@ SHELL := /bin/bash
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
+# Test workers: one per core of the CI machine (2). Each test file runs whole on one worker
+# (--dist loadfile), so a file's fixtures, fake cameras and ptys are never shared between workers.
+TEST_WORKERS ?= 2
 STAMP := $(VENV)/.installed
 
-.PHONY: setup llvm demo test bench lint clean
+.PHONY: setup llvm aravis-debs aravis chromium demo test bench lint clean
 
-setup: $(STAMP) llvm
+setup: $(STAMP) llvm aravis chromium
 
 # Reinstall only when the dependency list changes.
 $(STAMP): pyproject.toml
@@ -32,13 +35,74 @@ llvm:
 	  echo "note: libLLVM >= 17 not found and not root; Mitsuba will use scalar_rgb"; \
 	fi
 
+# The Aravis camera backend and its tests: Debian's Aravis 0.8 (the GI typelib and the
+# arv-fake-gv-camera-0.8 GigE Vision simulator the tests start on 127.0.0.1), plus the headers
+# PyGObject builds against. Installed as root like libllvm19. Where that is impossible the
+# reason goes to $(VENV)/.aravis-unavailable: then, and only then, the Aravis tests skip
+# (tests/_aravis.py); otherwise a missing library is a test failure.
+ARAVIS_DEBS := aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev
+ARAVIS_MARK := $(VENV)/.aravis-unavailable
+have_aravis_debs = command -v arv-fake-gv-camera-0.8 >/dev/null && \
+  ls /usr/lib/*/girepository-1.0/Aravis-0.8.typelib >/dev/null 2>&1 && \
+  pkg-config --exists gobject-introspection-1.0 cairo
+
+aravis-debs:
+	@if $(have_aravis_debs); then \
+	  :; \
+	elif [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	  echo "installing Aravis 0.8 for the GenICam camera backend ($(ARAVIS_DEBS))"; \
+	  (DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(ARAVIS_DEBS) >/dev/null 2>&1 || \
+	   (apt-get update -qq >/dev/null 2>&1 && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(ARAVIS_DEBS) >/dev/null 2>&1)) || \
+	  echo "note: could not install $(ARAVIS_DEBS); the Aravis tests will skip"; \
+	else \
+	  echo "note: Aravis 0.8 not found and not root; the Aravis tests will skip"; \
+	fi
+
+# PyGObject in the venv (pip builds it against the system's girepository, ~1 min, once).
+aravis: $(STAMP) aravis-debs
+	@if ! ($(have_aravis_debs)); then \
+	  echo "Debian packages missing: $(ARAVIS_DEBS) (make setup installs them as root)" > $(ARAVIS_MARK); \
+	elif $(BIN)/python -c 'import gi; gi.require_version("Aravis", "0.8")' 2>/dev/null; then \
+	  rm -f $(ARAVIS_MARK); \
+	else \
+	  echo "building PyGObject for the Aravis backend (about a minute, once)"; \
+	  if set -o pipefail; $(BIN)/python -m pip install --quiet -e '.[aravis]' 2>&1 | \
+	      { grep -v "^WARNING: Location" || true; }; then \
+	    rm -f $(ARAVIS_MARK); \
+	  else \
+	    echo "pip could not build PyGObject (gonio[aravis])" > $(ARAVIS_MARK); \
+	    echo "note: pip could not build PyGObject; the Aravis tests will skip"; \
+	  fi; \
+	fi
+
+# Headless Chromium checks that report.html renders (tests/_browser.py): no console error, every
+# image decoded, a screenshot kept. Installed as root like the others; where that is impossible
+# the reason goes to $(CHROMIUM_MARK) and then, and only then, the browser tests skip.
+CHROMIUM_MARK := $(VENV)/.chromium-unavailable
+chromium: $(STAMP)
+	@if command -v chromium >/dev/null; then \
+	  rm -f $(CHROMIUM_MARK); \
+	elif [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	  echo "installing chromium to check the HTML report in a real browser (about a minute, once)"; \
+	  (DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1 || \
+	   (apt-get update -qq >/dev/null 2>&1 && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1)) && \
+	  rm -f $(CHROMIUM_MARK) || \
+	  { echo "apt-get could not install chromium" > $(CHROMIUM_MARK); \
+	    echo "note: could not install chromium; the report's browser check will skip"; }; \
+	else \
+	  echo "chromium not found and not root" > $(CHROMIUM_MARK); \
+	  echo "note: chromium not found and not root; the report's browser check will skip"; \
+	fi
+
 demo: setup
 	$(BIN)/gonio demo
 
 test: setup
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=25
 
 bench: setup
 	$(BIN)/python benchmarks/run_all.py $(BENCH)

@@ -1,13 +1,11 @@
-"""Real cameras: a tethered-folder camera, and an optional gphoto2 camera.
+"""Real cameras: a tethered-folder camera (the gphoto2 and Aravis cameras have modules of their
+own, acquisition.cameras_gphoto2 and acquisition.cameras_aravis).
 
 Tethered folder: vendor software (or a tethering tool) writes each frame into a folder. After
 a trigger, the camera waits for a file that was not there before, waits until its size stops
 changing (the writer may still be streaming it), and returns its bytes untouched with its
 suffix (".nef", ".dng", ".exr"...). No frame within `timeout_s` is a DeviceFault, so the
 runner stops safely instead of hanging or recording a stale frame.
-
-gphoto2: the python-gphoto2 bindings are an optional extra; the import is guarded, and asking
-for the backend without them is a DeviceFault with the install hint.
 """
 
 from __future__ import annotations
@@ -21,7 +19,7 @@ from typing import Any
 
 from acquisition.protocols import DeviceFault, Frame
 
-__all__ = ["FolderCamera", "Gphoto2Camera", "folder_camera", "gphoto2_camera"]
+__all__ = ["FolderCamera", "folder_camera"]
 
 # Names vendor tools use while a file is still being written; never picked up.
 _PARTIAL = (".tmp", ".part", ".crdownload", ".download", "~")
@@ -145,82 +143,3 @@ def folder_camera(config: Any, clock: Any = None) -> FolderCamera:
         raise DeviceFault('camera.backend "folder" needs camera.folder (the tethering folder)')
     trigger = _command_trigger(cam.trigger_command) if cam.trigger_command else None
     return FolderCamera(cam.folder, trigger=trigger, timeout_s=cam.timeout_s)
-
-
-class Gphoto2Camera:
-    """A camera driven through libgphoto2 (python-gphoto2). Frames are the camera's own files
-    (RAW when the camera is set to RAW), returned untouched."""
-
-    def __init__(self, info: dict[str, Any] | None = None) -> None:
-        try:
-            import gphoto2 as gp  # type: ignore[import-not-found]
-        except ImportError as exc:
-            raise DeviceFault(
-                "camera.backend 'gphoto2' needs the python-gphoto2 package "
-                "(pip install gphoto2) and libgphoto2"
-            ) from exc
-        self._gp = gp
-        self.info = dict(info or {})
-        try:
-            self._cam = gp.Camera()
-            self._cam.init()
-        except gp.GPhoto2Error as exc:
-            raise DeviceFault(f"gphoto2: no camera ({exc})") from exc
-
-    def _set_shutter(self, exposure_s: float) -> None:
-        gp = self._gp
-        config = self._cam.get_config()
-        ok, widget = gp.gp_widget_get_child_by_name(config, "shutterspeed")
-        if ok < gp.GP_OK:
-            raise DeviceFault("gphoto2: the camera has no shutterspeed setting")
-        choices = [widget.get_choice(i) for i in range(widget.count_choices())]
-        best = min(choices, key=lambda c: abs(_parse_shutter(c) - exposure_s))
-        widget.set_value(best)
-        self._cam.set_config(config)
-
-    def capture(self, exposure_s: float) -> Frame:
-        gp = self._gp
-        try:
-            self._set_shutter(exposure_s)
-            where = self._cam.capture(gp.GP_CAPTURE_IMAGE)
-            cam_file = self._cam.file_get(where.folder, where.name, gp.GP_FILE_TYPE_NORMAL)
-            data = bytes(memoryview(cam_file.get_data_and_size()))
-        except gp.GPhoto2Error as exc:
-            raise DeviceFault(f"gphoto2 capture failed: {exc}") from exc
-        return Frame(
-            data=data,
-            suffix=Path(where.name).suffix.lower(),
-            metadata={"exposure_s": exposure_s, "source_file": where.name},
-        )
-
-    def supported_exposures(self) -> list[float]:
-        gp = self._gp
-        config = self._cam.get_config()
-        ok, widget = gp.gp_widget_get_child_by_name(config, "shutterspeed")
-        if ok < gp.GP_OK:
-            return []
-        values = (_parse_shutter(widget.get_choice(i)) for i in range(widget.count_choices()))
-        return sorted(v for v in values if v > 0)
-
-    def describe(self) -> dict[str, Any]:
-        return {"backend": "gphoto2", **self.info}
-
-    def close(self) -> None:
-        self._cam.exit()
-
-
-def _parse_shutter(text: str) -> float:
-    """gphoto2 shutter strings: "1/250", "0.5", "2", "30s"; anything else (bulb) → -1."""
-    t = text.strip().rstrip("s")
-    try:
-        if "/" in t:
-            num, den = t.split("/", 1)
-            return float(num) / float(den)
-        return float(t)
-    except ValueError:
-        return -1.0
-
-
-def gphoto2_camera(config: Any, clock: Any = None) -> Gphoto2Camera:
-    """Factory for `CAMERA_BACKENDS["gphoto2"]`."""
-    return Gphoto2Camera()

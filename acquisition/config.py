@@ -1,50 +1,58 @@
 """Rig and plan configs (TOML → pydantic, extra="forbid").
 
-Every mistake a user can type becomes a `ConfigError` with one line naming the file, the key and
-the allowed range, so the CLI can print it without a traceback.
+Every mistake a user can type becomes a `ConfigError` (plumbing.config) with one line naming the
+file, the key and the allowed range, so the CLI can print it without a traceback.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import re
-import tomllib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
+
+from acquisition.device_config import AravisConfig, Gphoto2Config, ScpiConfig
+from plumbing.config import (
+    ConfigError,
+    Strict,
+    format_validation_error,
+    load_config_data,
+)
 
 __all__ = [
-    "ConfigError",
     "AxisConfig",
     "BusConfig",
     "LightConfig",
     "CameraConfig",
+    "CAMERA_BACKEND_NAMES",
+    "LIGHT_BACKEND_NAMES",
+    "SampleConfig",
+    "ReferenceConfig",
+    "RigCalibrationConfig",
     "GeometryConfig",
+    "CalibrationPhasesConfig",
+    "DarkPhaseConfig",
+    "FlatPhaseConfig",
+    "ReferencePhaseConfig",
+    "REFERENCE_POSES_DEG",
     "RigConfig",
     "PlanConfig",
     "AutoExposureConfig",
     "load_rig",
     "load_plan",
-    "format_validation_error",
-    "load_config_data",
-    "CONFIG_SUFFIXES",
+    "load_intrinsics",
+    "load_arm_offsets",
+    "ARM_OFFSETS_SCHEMA",
 ]
 
 VELOCITY_LIMIT = {"XM430-W350": 200, "XL430-W250": 265}
+_LIGHT_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
 AxisRole = Literal["light_theta", "light_phi", "camera_theta", "camera_phi", "sample_azimuth"]
 
 
-class ConfigError(ValueError):
-    """A config file is wrong. The message is one line: file, key, what is allowed."""
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class AxisConfig(_Strict):
+class AxisConfig(Strict):
     role: AxisRole
     id: int = Field(ge=0, le=252, description="Dynamixel ID")
     model: Literal["XM430-W350", "XL430-W250"] = "XM430-W350"
@@ -71,7 +79,7 @@ class AxisConfig(_Strict):
         return self
 
 
-class BusConfig(_Strict):
+class BusConfig(Strict):
     url: str = Field(description="serial device (/dev/ttyUSB0), or dxlsim://NAME for the emulator")
     baudrate: int = Field(57600, description="X-series ship at 57600")
     retries: int = Field(3, ge=0, le=20)
@@ -86,28 +94,211 @@ class BusConfig(_Strict):
         return v
 
 
-class LightConfig(_Strict):
-    url: str = Field(description="serial device, or lightsim://NAME for the emulator")
+# Light backends by name (factories in acquisition.rig.LIGHT_BACKENDS): "gonio-ascii" speaks
+# docs/light-protocol.md on a serial line, "scpi" a SCPI supply through PyVISA.
+LIGHT_BACKEND_NAMES = ("gonio-ascii", "scpi")
+
+
+class LightConfig(Strict):
+    backend: str = Field("gonio-ascii", description=f"one of {', '.join(LIGHT_BACKEND_NAMES)}")
+    url: str = Field(
+        description="serial device, lightsim://NAME for the emulator, a VISA resource "
+        '(backend "scpi"), or "manual" for a lamp switched by hand (no monitor: drift is then '
+        "uncorrected, and reports say so)"
+    )
+    scpi: ScpiConfig | None = Field(None, description='[light.scpi]: backend "scpi" settings')
+    baudrate: int = Field(9600, description="serial speed of the light controller")
     level: float = Field(1.0, gt=0, le=1, description="relative intensity used for the run")
     intensity_W_sr: tuple[float, float, float] | None = Field(
         None,
         description="radiant intensity per channel (R, G, B) at level 1, W/sr, from the "
         "source's calibration certificate; without it results are relative",
     )
+    intensity_rel_sigma: float | None = Field(
+        None,
+        gt=0,
+        lt=1,
+        description="relative standard uncertainty (k = 1) of intensity_W_sr from the same "
+        "certificate (e.g. 0.01 for 1 %); one error shared by the whole run, carried in the "
+        "samples' uncertainty budget",
+    )
     warmup_s: float = Field(0.0, ge=0, le=3600)
 
+    @field_validator("baudrate")
+    @classmethod
+    def _baud(cls, v: int) -> int:
+        if v not in _LIGHT_BAUDS:
+            raise ValueError(f"baudrate must be one of {_LIGHT_BAUDS}")
+        return v
 
-class CameraConfig(_Strict):
-    backend: str = Field("sim", description='"sim", "folder" or "gphoto2"')
+    @field_validator("backend")
+    @classmethod
+    def _backend(cls, v: str) -> str:
+        if v not in LIGHT_BACKEND_NAMES:
+            raise ValueError(
+                f"unknown light backend {v!r}; known: {', '.join(LIGHT_BACKEND_NAMES)}"
+            )
+        return v
+
+    @model_validator(mode="after")
+    def _scpi(self) -> LightConfig:
+        if self.backend == "scpi" and (self.manual or self.scpi is None):
+            raise ValueError(
+                'backend "scpi" needs url = a VISA resource (e.g. "ASRL/dev/ttyUSB1::INSTR") '
+                "and a [light.scpi] table with full_scale"
+            )
+        return self
+
+    @property
+    def manual(self) -> bool:
+        return self.url.strip().lower() == "manual"
+
+
+# Camera backends by name (the factories register in acquisition.rig; the simulator registers
+# "sim" at run time). Checked when the rig file loads, so a typo is one line before anything
+# moves.
+CAMERA_BACKEND_NAMES = ("sim", "folder", "gphoto2", "aravis")
+ColorFilter = Literal["RGGB", "BGGR", "GRBG", "GBRG", "mono", "rgb"]
+
+
+class CameraConfig(Strict):
+    """The camera: which backend drives it, and what the lab knows about it (datasheet and
+    calibration), which is what calibration uses — never what a simulator renders.
+
+    Optics: the lens `focal_length_m` with `pixel_pitch_m` gives the pinhole f_x = f_y = f/p
+    (principal point at the image centre) unless `[calibration] intrinsics` names the file
+    `gonio calibrate-camera --json` wrote. Radiometry (camera irradiance equation, certified
+    method): `f_number`, `pixel_pitch_m`, `quantum_efficiency`, `wavelength_m`, `gain_e_per_dn`;
+    `black_level_dn` and `white_level_dn` (the measured clip level, which can sit far below
+    2^bit_depth − 1) bound the usable counts.
+    """
+
+    backend: str = Field("sim", description=f"one of {', '.join(CAMERA_BACKEND_NAMES)}")
+    model: str = Field("", description="make and model, for the record")
+    resolution: tuple[int, int] = Field(description="image width, height in pixels")
+    pixel_pitch_m: float = Field(gt=0, le=1e-3)
+    focal_length_m: float | None = Field(None, gt=0, le=2.0)
+    f_number: float = Field(gt=0, le=128)
+    gain_e_per_dn: float = Field(gt=0, description="electrons per digital number (1/K)")
+    black_level_dn: float = Field(ge=0)
+    white_level_dn: float = Field(gt=0, description="highest unclipped DN (measured)")
+    read_noise_e: float = Field(0.0, ge=0, description="temporal dark noise, electrons")
+    quantum_efficiency: float | None = Field(
+        None, gt=0, le=1, description="at wavelength_m; needed for certified radiometry"
+    )
+    wavelength_m: float = Field(550e-9, gt=0, lt=1e-5, description="photon energy h·c/λ")
+    color_filter: ColorFilter = Field(
+        description='Bayer pattern of a RAW mosaic, "mono", or "rgb" (three values per pixel)'
+    )
+    bit_depth: int = Field(ge=8, le=32)
+    exposure_min_s: float = Field(1e-5, gt=0, le=3600)
+    exposure_max_s: float = Field(30.0, gt=0, le=3600)
     folder: str | None = Field(None, description='"folder": where the tethering tool writes')
     trigger_command: tuple[str, ...] | None = Field(
         None, description='"folder": argv run per frame; "{exposure_s}" is replaced'
     )
     timeout_s: float = Field(30.0, gt=0, le=3600, description="wait for a frame, wall time")
     readout_s: float = Field(0.05, ge=0, description="lab time per frame beyond the exposure")
+    aravis: AravisConfig = Field(default_factory=AravisConfig, description="[camera.aravis]")
+    gphoto2: Gphoto2Config = Field(default_factory=Gphoto2Config, description="[camera.gphoto2]")
+
+    @field_validator("backend")
+    @classmethod
+    def _backend(cls, v: str) -> str:
+        if v not in CAMERA_BACKEND_NAMES:
+            raise ValueError(
+                f"unknown camera backend {v!r}; known: {', '.join(CAMERA_BACKEND_NAMES)}"
+            )
+        return v
+
+    @field_validator("resolution")
+    @classmethod
+    def _resolution(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if not all(8 <= n <= 100_000 for n in v):
+            raise ValueError(f"resolution must be [width, height] in pixels, 8..100000 (got {v})")
+        return v
+
+    @model_validator(mode="after")
+    def _levels(self) -> CameraConfig:
+        if self.white_level_dn <= self.black_level_dn:
+            raise ValueError(
+                f"white_level_dn ({self.white_level_dn}) must be above black_level_dn "
+                f"({self.black_level_dn})"
+            )
+        if self.white_level_dn > 2**self.bit_depth - 1:
+            raise ValueError(
+                f"white_level_dn ({self.white_level_dn}) exceeds 2^bit_depth − 1 "
+                f"({2**self.bit_depth - 1})"
+            )
+        if self.exposure_min_s >= self.exposure_max_s:
+            raise ValueError("exposure_min_s must be below exposure_max_s")
+        return self
+
+    @property
+    def nominal_fx_px(self) -> float | None:
+        """f/p from the datasheet (None without a focal length)."""
+        if self.focal_length_m is None:
+            return None
+        return self.focal_length_m / self.pixel_pitch_m
 
 
-class GeometryConfig(_Strict):
+class SampleConfig(Strict):
+    """The sample as mounted. gonio assumes the holder brings the sample's top surface to the
+    arms' common centre (the origin, DESIGN §3); `thickness_m` and `holder` are recorded."""
+
+    size_m: float = Field(gt=0, le=1, description="side of the square flat sample")
+    thickness_m: float = Field(0.0, ge=0, le=0.1)
+    orientation_mark: str = Field(
+        "+x", description="how φ = 0 (+x) is marked on the sample, e.g. 'notch on the +x edge'"
+    )
+    holder: str = Field("", description="holder description, for the record")
+
+
+class ReferenceConfig(Strict):
+    """The reference target for reference-target radiometry (calibration.reference): a
+    Lambertian standard of certified albedo, or a certified f_ref(θ_i, θ_o[, Δφ]) table."""
+
+    type: Literal["lambertian", "table"] = "lambertian"
+    albedo: tuple[float, float, float] | None = Field(
+        None, description="certified directional-hemispherical reflectance per channel (R, G, B)"
+    )
+    albedo_sigma: float = Field(
+        0.0, ge=0, lt=0.5, description="relative 1-σ of the certificate (e.g. 0.005 = 0.5 %)"
+    )
+    table: str | None = Field(None, description="f_ref table file (CSV/TOML), relative path")
+    table_sigma: float = Field(0.0, ge=0, lt=0.5, description="relative 1-σ of the table")
+    size_m: float = Field(gt=0, le=1, description="side of the square target")
+
+    @model_validator(mode="after")
+    def _kind(self) -> ReferenceConfig:
+        if self.type == "lambertian":
+            if self.albedo is None:
+                raise ValueError("a lambertian reference needs albedo = [R, G, B]")
+            if not all(0 < a <= 1 for a in self.albedo):
+                raise ValueError(f"albedo must be in (0, 1] (got {list(self.albedo)})")
+        elif self.table is None:
+            raise ValueError('a "table" reference needs table = "FILE"')
+        return self
+
+    @property
+    def rel_sigma(self) -> float:
+        return self.albedo_sigma if self.type == "lambertian" else self.table_sigma
+
+
+class RigCalibrationConfig(Strict):
+    """Geometric calibration files that `gonio calibrate` uses (relative to the rig file)."""
+
+    intrinsics: str | None = Field(
+        None,
+        description="JSON written by `gonio calibrate-camera --json` (overrides the "
+        "nominal focal length)",
+    )
+    arm_offsets: str | None = Field(
+        None, description="JSON written by `gonio calibrate-rig` (arm zero offsets, tilt)"
+    )
+
+
+class GeometryConfig(Strict):
     """`two-arm`: light and camera each on a spherical arm (elevation + azimuth axes).
     `inplane`: the light arm swings in one vertical plane on its side of the normal, the camera
     arm in the same plane with a signed angle (positive = across the normal from the light,
@@ -120,7 +311,12 @@ class GeometryConfig(_Strict):
     max_theta_deg: float = Field(85.0, gt=0, le=90)
 
 
-class RigConfig(_Strict):
+class RigConfig(Strict):
+    """What the lab knows about its instrument: devices, axes, geometry, the sample, the camera,
+    the reference target and the calibration files. Calibration reads only this (frozen into
+    the run) and what the run recorded; a simulator's scene is the emulated world, never read
+    by calibration."""
+
     name: str = "rig"
     clock: str = Field("system", description='"system" for a real rig, "sim" for the emulator')
     scene: str | None = Field(None, description="scene TOML (simulated rigs only), relative path")
@@ -129,8 +325,11 @@ class RigConfig(_Strict):
     bus: BusConfig
     axes: tuple[AxisConfig, ...]
     light: LightConfig
-    camera: CameraConfig = Field(default_factory=CameraConfig)
+    camera: CameraConfig
+    sample: SampleConfig
     geometry: GeometryConfig = Field(default_factory=GeometryConfig)
+    reference: ReferenceConfig | None = None
+    calibration: RigCalibrationConfig = Field(default_factory=RigCalibrationConfig)
 
     @model_validator(mode="after")
     def _unique(self) -> RigConfig:
@@ -155,6 +354,11 @@ class RigConfig(_Strict):
             raise ValueError(
                 f"the {self.geometry.preset} preset needs axes with roles {sorted(need)}"
             )
+        if self.camera.focal_length_m is None and self.calibration.intrinsics is None:
+            raise ValueError(
+                "camera.focal_length_m is missing: give the lens focal length, or "
+                "[calibration] intrinsics = FILE (from `gonio calibrate-camera --json`)"
+            )
         return self
 
     def axis(self, role: str) -> AxisConfig:
@@ -164,7 +368,58 @@ class RigConfig(_Strict):
         raise KeyError(role)
 
 
-class AutoExposureConfig(_Strict):
+# Reference poses (θ_i, φ_i, θ_o, φ_o in deg): the 0°/45° geometry of reflectance-standard
+# certificates, and two more geometries so a pose-dependent error (f_ref, geometry) shows up as
+# scatter between poses (the Birge ratio of calibration.reference.combine_scales).
+REFERENCE_POSES_DEG = (
+    (0.0, 0.0, 45.0, 180.0),
+    (30.0, 0.0, 30.0, 90.0),
+    (45.0, 0.0, 10.0, 270.0),
+)
+
+
+class DarkPhaseConfig(Strict):
+    """Dark frames (lens capped): `count` per exposure; by default every exposure the plan may
+    take (its brackets, or its auto-exposure ladder), so every frame has its master dark."""
+
+    count: int = Field(16, ge=2, le=1000, description="frames per exposure")
+    exposures_s: tuple[float, ...] | None = None
+
+
+class FlatPhaseConfig(Strict):
+    """Flat field (the camera facing a uniform source: integrating sphere port or diffuser)."""
+
+    count: int = Field(32, ge=2, le=1000)
+    exposure_s: float | None = Field(
+        None, gt=0, le=60, description="default: the plan's longest exposure"
+    )
+
+
+class ReferencePhaseConfig(Strict):
+    """Reference-target captures (the target in the sample's place, the rig's [reference])."""
+
+    poses_deg: tuple[tuple[float, float, float, float], ...] = REFERENCE_POSES_DEG
+    exposures_s: tuple[float, ...] | None = Field(
+        None, description="default: the plan's shortest, middle and longest exposures"
+    )
+
+
+class CalibrationPhasesConfig(Strict):
+    """Calibration captures a plan asks for; `gonio acquire` records them into
+    RUN/calibration/ before the first measurement pose, in this order: darks, flat, reference.
+    Each step that needs hands (cap the lens, mount the flat source, swap in the target) asks
+    the operator first."""
+
+    dark: DarkPhaseConfig | None = None
+    flat: FlatPhaseConfig | None = None
+    reference: ReferencePhaseConfig | None = None
+
+    @property
+    def empty(self) -> bool:
+        return self.dark is None and self.flat is None and self.reference is None
+
+
+class AutoExposureConfig(Strict):
     """Auto-exposure per pose (`exposure_mode = "auto"`): bracket until the sample region has an
     unsaturated frame and enough signal (decision logic: `acquisition.exposure`).
 
@@ -202,7 +457,7 @@ class AutoExposureConfig(_Strict):
         return self
 
 
-class PlanConfig(_Strict):
+class PlanConfig(Strict):
     """A sampling plan (angles in degrees; φ from +x toward +y).
 
     - `isotropic`: every (θ_i, θ_o, Δφ) with φ_i = 0 and φ_o = Δφ (Δφ = 180° is the plane of
@@ -219,6 +474,12 @@ class PlanConfig(_Strict):
     - `adaptive`: two phases in one run — the coarse plan `prescan` (any other type), then
       fine poses around each incidence's peak (`refine_span_deg`, `refine_step_deg`, see
       `acquisition.plans.refine_around_peak`), decided from the pre-scan frames.
+    - `anisotropic`: in-plane scans θ_i × θ_o with the sample turned to every orientation ψ of
+      `orientations_deg` (≥ 4 distinct mod 180°, what a lobe (α_x, α_y, φ₀) needs), on the
+      specular side and, with `both_sides`, the retro side (`acquisition.plans.anisotropic_poses`).
+    - `retro`: for every θ_i, the camera on rings around the light's direction at the rig's
+      `min_separation_deg` plus each of `retro_offsets_deg`, as close to retro-reflection as the
+      rig allows; the gap left is reported (`acquisition.plans.retro_poses`).
 
     Exposure: `exposure_mode = "fixed"` takes every bracket of `exposures_s` at every pose;
     `"auto"` brackets per pose as `auto_exposure` says (then `exposures_s` is unused).
@@ -226,9 +487,16 @@ class PlanConfig(_Strict):
     """
 
     name: str = "plan"
-    type: Literal["isotropic", "explicit", "hemisphere", "inplane", "rusinkiewicz", "adaptive"] = (
-        "isotropic"
-    )
+    type: Literal[
+        "isotropic",
+        "explicit",
+        "hemisphere",
+        "inplane",
+        "rusinkiewicz",
+        "adaptive",
+        "anisotropic",
+        "retro",
+    ] = "isotropic"
     theta_i_deg: tuple[float, ...] = ()
     theta_o_deg: tuple[float, ...] = ()
     delta_phi_deg: tuple[float, ...] = (180.0,)
@@ -237,7 +505,16 @@ class PlanConfig(_Strict):
     theta_step_deg: float | None = Field(None, gt=0, le=90)
     theta_max_deg: float = Field(80.0, gt=0, lt=90)
     phi_step_deg: float | None = Field(None, gt=0, le=360)
-    both_sides: bool = Field(True, description="inplane: also the retro side (φ_o = φ_i)")
+    both_sides: bool = Field(
+        True, description="inplane, anisotropic: also the retro side (φ_o = φ_i)"
+    )
+    orientations_deg: tuple[float, ...] = Field(
+        (), description="anisotropic: sample orientations ψ (azimuth of the plane of incidence)"
+    )
+    retro_offsets_deg: tuple[float, ...] = Field(
+        (0.0, 1.0, 2.0, 4.0, 8.0, 15.0, 25.0),
+        description="retro: ring radii beyond the rig's min_separation_deg",
+    )
     theta_h_deg: tuple[float, ...] = ()
     theta_d_deg: tuple[float, ...] = ()
     phi_d_deg: tuple[float, ...] = ()
@@ -254,6 +531,7 @@ class PlanConfig(_Strict):
     prescan: PlanConfig | None = Field(None, description="adaptive: the coarse phase-1 plan")
     refine_span_deg: float = Field(10.0, gt=0, le=45, description="adaptive: patch half-width")
     refine_step_deg: float = Field(2.5, gt=0, le=45, description="adaptive: fine spacing")
+    calibration: CalibrationPhasesConfig = Field(default_factory=CalibrationPhasesConfig)
 
     @field_validator("theta_i_deg", "theta_o_deg", "theta_h_deg", "theta_d_deg")
     @classmethod
@@ -281,7 +559,9 @@ class PlanConfig(_Strict):
 
     @model_validator(mode="after")
     def _content(self) -> PlanConfig:
-        if self.type in ("isotropic", "inplane") and not (self.theta_i_deg and self.theta_o_deg):
+        if self.type in ("isotropic", "inplane", "anisotropic") and not (
+            self.theta_i_deg and self.theta_o_deg
+        ):
             raise ValueError(f"an {self.type} plan needs theta_i_deg and theta_o_deg lists")
         if self.type == "hemisphere":
             for key in ("theta_i_deg", "theta_o_deg"):
@@ -304,6 +584,18 @@ class PlanConfig(_Strict):
                     f"refine_step_deg ({self.refine_step_deg}) must not exceed "
                     f"refine_span_deg ({self.refine_span_deg})"
                 )
+        if self.type == "anisotropic":
+            distinct = {round(o % 180.0, 9) for o in self.orientations_deg}
+            if len(distinct) < 4:  # acquisition.plans.MIN_ORIENTATIONS (α_x, α_y, φ₀ + a check)
+                raise ValueError(
+                    "an anisotropic plan needs orientations_deg with ≥ 4 sample orientations "
+                    f"distinct mod 180 deg; got {sorted(distinct)}"
+                )
+        if self.type == "retro":
+            if not self.theta_i_deg:
+                raise ValueError("a retro plan needs theta_i_deg")
+            if not self.retro_offsets_deg or min(self.retro_offsets_deg) < 0:
+                raise ValueError("retro_offsets_deg must list offsets ≥ 0 deg")
         if self.type == "explicit" and not self.poses_deg:
             raise ValueError("an explicit plan needs poses_deg")
         for pose in self.poses_deg:
@@ -315,165 +607,126 @@ class PlanConfig(_Strict):
         return self
 
 
-# Units live in key names (`distance_m`, `exposure_s`, `min_deg`), never in values: a value
-# is a plain number in the key's unit. These suffixes name the unit, longest first.
-_UNIT_SUFFIXES = (
-    ("_W_sr", "W/sr"),
-    ("_deg", "deg"),
-    ("_rad", "rad"),
-    ("_mm", "mm"),
-    ("_cm", "cm"),
-    ("_um", "µm"),
-    ("_ms", "ms"),
-    ("_us", "µs"),
-    ("_m", "m"),
-    ("_s", "s"),
-)
-_SI_SUFFIX = {"_rad": "_deg", "_mm": "_m", "_cm": "_m", "_um": "_m", "_ms": "_s", "_us": "_s"}
-_NUMBER_WITH_UNIT = re.compile(r"^\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*([^\d\s].*?)\s*$")
-_RANGE_TYPES = ("greater_than", "greater_than_equal", "less_than", "less_than_equal")
-
-
-def _unit_of(key: str) -> tuple[str, str] | None:
-    """(suffix, unit name) of a unit-carrying key, e.g. "min_deg" → ("_deg", "deg")."""
-    for suffix, unit in _UNIT_SUFFIXES:
-        if key.endswith(suffix) and len(key) > len(suffix):
-            return suffix, unit
-    return None
-
-
-def _fields_at(model: type[BaseModel] | None, loc: tuple) -> set[str] | None:
-    """Field names of the (nested) model that holds the last key of `loc`, if known."""
-    for part in loc[:-1]:
-        if model is None:
-            return None
-        if isinstance(part, int):
-            continue
-        info = model.model_fields.get(str(part))
-        model = _submodel(info.annotation) if info is not None else None
-    return set(model.model_fields) if model is not None else None
-
-
-def _submodel(annotation: object) -> type[BaseModel] | None:
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    for arg in getattr(annotation, "__args__", ()):
-        found = _submodel(arg)
-        if found is not None:
-            return found
-    return None
-
-
-def _unit_hint(e: dict, loc: tuple, model: type[BaseModel] | None) -> str | None:
-    """A one-line explanation when the mistake is about units, else None."""
-    keys = [p for p in loc if isinstance(p, str)]
-    if not keys:
+def _resolve(base: Path, value: str | None) -> str | None:
+    if value is None:
         return None
-    key = keys[-1]
-    unit = _unit_of(key)
-    got = e.get("input")
-    if e["type"] == "extra_forbidden" and unit is not None and unit[0] in _SI_SUFFIX:
-        want = key[: -len(unit[0])] + _SI_SUFFIX[unit[0]]
-        fields = _fields_at(model, loc)
-        if fields is None or want in fields:
-            return (
-                f"unknown key; gonio configs use SI units and degrees: write {want} "
-                f"(in {dict(_UNIT_SUFFIXES)[_SI_SUFFIX[unit[0]]]}) instead of {key}"
-            )
-    if unit is not None and e["type"] in ("tuple_type", "list_type"):
-        return f"{key} is a list of numbers in {unit[1]}, e.g. [30.0] (got {got!r})"
-    if unit is not None and isinstance(got, str):
-        m = _NUMBER_WITH_UNIT.match(got)
-        if m:
-            return (
-                f"{key} is in {unit[1]} (the unit is in the key name); write a plain number "
-                f"in {unit[1]}, without a unit string (got {got!r})"
-            )
-        return f"{key} is a number in {unit[1]}; write it without quotes (got {got!r})"
-    if unit is not None and e["type"] in _RANGE_TYPES:
-        return f"{e['msg']}; {key} is in {unit[1]} (got {got!r})"
-    return None
-
-
-def format_validation_error(
-    path: Path | str, err: ValidationError, model: type[BaseModel] | None = None
-) -> str:
-    """First pydantic error as one line: `file: key.path: message (got value)`.
-
-    `model` (the validated class) lets an unknown key like `distance_mm` be answered with the
-    real key (`distance_m`) when it exists.
-    """
-    e = err.errors()[0]
-    loc = tuple(e["loc"])
-    where = ".".join(str(p) for p in loc)
-    msg = e["msg"].removeprefix("Value error, ").removeprefix("Assertion failed, ")
-    hint = _unit_hint(e, loc, model)
-    if hint is not None:
-        return f"{path}: {where}: {hint}"
-    if e["type"] == "extra_forbidden":
-        msg = "unknown key (check the spelling; see the commented example configs in configs/)"
-    elif e["type"] == "missing":
-        msg = "required key is missing"
-    got = e.get("input")
-    tail = (
-        f" (got {got!r})"
-        if e["type"] not in ("missing", "extra_forbidden") and loc and _short(got)
-        else ""
-    )
-    if not loc:  # a whole-file check (duplicate ids, missing roles): its message names the key
-        return f"{path}: {msg}{tail}"
-    return f"{path}: {where}: {msg}{tail}"
-
-
-def _short(v: object) -> bool:
-    return not isinstance(v, dict | list | tuple) or len(repr(v)) < 60
-
-
-CONFIG_SUFFIXES = (".toml", ".json")
-
-
-def load_config_data(path: Path | str) -> dict:
-    """Parse a config file. Configs are data: TOML (or JSON), never code, so other formats
-    (YAML can construct objects, Python would run) are refused by suffix."""
-    path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"{path}: no such file")
-    if path.is_dir():
-        raise ConfigError(f"{path}: is a directory; give a .toml config file")
-    if path.suffix.lower() not in CONFIG_SUFFIXES:
-        raise ConfigError(
-            f"{path}: configs must be TOML (.toml) or JSON (.json) files, not "
-            f"{path.suffix or 'files without a suffix'!r}; convert it to TOML"
-        )
-    try:
-        with open(path, "rb") as fh:
-            if path.suffix.lower() == ".json":
-                data = json.load(fh)
-                if not isinstance(data, dict):
-                    raise ConfigError(f"{path}: a JSON config must be an object {{...}}")
-                return data
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read ({exc})") from None
+    p = Path(value).expanduser()
+    return str(p if p.is_absolute() else (base / p).resolve())
 
 
 def load_rig(path: Path | str) -> RigConfig:
+    """Parse and check a rig file. Paths in it (scene, calibration files, reference table) are
+    relative to the rig file, so configs move together; the files they name must exist, and an
+    intrinsics file must hold what `gonio calibrate-camera --json` writes — checked here, so a
+    mistake is one line before any device is opened."""
+    path = Path(path)
     data = load_config_data(path)
     try:
         rig = RigConfig.model_validate(data)
     except ValidationError as err:
         raise ConfigError(format_validation_error(path, err, RigConfig)) from None
-    if rig.scene is not None:
-        # Scene paths are relative to the rig file, so configs can be moved together.
-        scene = Path(rig.scene)
-        if not scene.is_absolute():
-            scene = (Path(path).parent / scene).resolve()
-        rig = rig.model_copy(update={"scene": str(scene)})
-    return rig
+    base = path.parent
+    cal = rig.calibration.model_copy(
+        update={
+            "intrinsics": _resolve(base, rig.calibration.intrinsics),
+            "arm_offsets": _resolve(base, rig.calibration.arm_offsets),
+        }
+    )
+    update: dict = {"scene": _resolve(base, rig.scene), "calibration": cal}
+    scpi = rig.light.scpi
+    if scpi is not None and scpi.visa_library.endswith("@sim") and len(scpi.visa_library) > 4:
+        # a pyvisa-sim definition file travels with the rig file, like the other paths
+        sim = _resolve(base, scpi.visa_library[:-4])
+        if not Path(sim).is_file():
+            raise ConfigError(f"{path}: light.scpi.visa_library: no such file {sim}")
+        update["light"] = rig.light.model_copy(
+            update={"scpi": scpi.model_copy(update={"visa_library": f"{sim}@sim"})}
+        )
+    for key, file in (("intrinsics", cal.intrinsics), ("arm_offsets", cal.arm_offsets)):
+        if file is not None and not Path(file).is_file():
+            raise ConfigError(f"{path}: calibration.{key}: no such file {file}")
+    if cal.intrinsics is not None:
+        load_intrinsics(cal.intrinsics, rig.camera.resolution, where=f"{path}: ")
+    if cal.arm_offsets is not None:
+        load_arm_offsets(cal.arm_offsets, where=f"{path}: ")
+    if rig.reference is not None and rig.reference.table is not None:
+        table = _resolve(base, rig.reference.table)
+        if not Path(table).is_file():
+            raise ConfigError(f"{path}: reference.table: no such file {table}")
+        update["reference"] = rig.reference.model_copy(update={"table": table})
+    return rig.model_copy(update=update)
+
+
+def _read_json(file: str | Path, where: str, what: str) -> dict:
+    try:
+        doc = json.loads(Path(file).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{where}{file}: not a readable {what} JSON file ({exc})") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{where}{file}: not a {what} JSON object")
+    return doc
+
+
+def load_intrinsics(
+    file: str | Path, resolution: tuple[int, int] | None = None, *, where: str = ""
+) -> dict:
+    """fx, fy, cx, cy (px) and dist (OpenCV k1, k2, p1, p2, k3) from the JSON that
+    `gonio calibrate-camera --json` writes; checked to be finite, positive focal lengths and a
+    principal point inside the image."""
+    doc = _read_json(file, where, "camera intrinsics")
+    try:
+        out = {k: float(doc[k]) for k in ("fx", "fy", "cx", "cy")}
+        dist = [float(v) for v in doc.get("dist", [])]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ConfigError(
+            f"{where}{file}: intrinsics need fx, fy, cx, cy (px) and dist, as written by "
+            f"`gonio calibrate-camera --json` (bad or missing {exc})"
+        ) from None
+    vals = [*out.values(), *dist]
+    if not all(math.isfinite(v) for v in vals) or out["fx"] <= 0 or out["fy"] <= 0:
+        raise ConfigError(f"{where}{file}: intrinsics must be finite with fx, fy > 0")
+    if resolution is not None:
+        w, h = resolution
+        if not (0 <= out["cx"] < w and 0 <= out["cy"] < h):
+            raise ConfigError(
+                f"{where}{file}: principal point ({out['cx']:g}, {out['cy']:g}) px lies outside "
+                f"the {w}×{h} image of camera.resolution; was it calibrated on this camera?"
+            )
+    out["dist"] = (dist + [0.0] * 5)[:5] if dist else [0.0] * 5
+    return out
+
+
+ARM_OFFSETS_SCHEMA = "gonio.arm-offsets/1"
+
+
+def load_arm_offsets(file: str | Path, *, where: str = "") -> dict:
+    """Arm zero offsets and sample-plane tilt (degrees) from `gonio calibrate-rig --out FILE`:
+    {"schema": "gonio.arm-offsets/1", "offsets_deg": {ROLE: δ}, "tilt_deg": {"x": τx,
+    "y": τy}, "sigma_deg": {...}, ...}. True axis angle = measured + δ."""
+    doc = _read_json(file, where, "arm offsets")
+    if doc.get("schema") != ARM_OFFSETS_SCHEMA:
+        raise ConfigError(
+            f"{where}{file}: not an arm-offsets file (schema {doc.get('schema')!r}, expected "
+            f"{ARM_OFFSETS_SCHEMA!r}; write it with `gonio calibrate-rig`)"
+        )
+    try:
+        offsets = {str(k): float(v) for k, v in doc["offsets_deg"].items()}
+        tilt = {k: float(doc["tilt_deg"][k]) for k in ("x", "y")}
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise ConfigError(f"{where}{file}: offsets_deg / tilt_deg missing or bad ({exc})") from None
+    vals = [*offsets.values(), *tilt.values()]
+    if not all(math.isfinite(v) and abs(v) < 30 for v in vals):
+        raise ConfigError(f"{where}{file}: offsets and tilt must be finite and below 30 deg")
+    bad = set(offsets) - {
+        "light_theta",
+        "light_phi",
+        "camera_theta",
+        "camera_phi",
+        "sample_azimuth",
+    }
+    if bad:
+        raise ConfigError(f"{where}{file}: unknown axis role {sorted(bad)[0]!r} in offsets_deg")
+    return {**doc, "offsets_deg": offsets, "tilt_deg": tilt}
 
 
 def load_plan(path: Path | str) -> PlanConfig:

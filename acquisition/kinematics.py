@@ -23,6 +23,7 @@ import numpy as np
 
 from acquisition.config import RigConfig
 from fitting.directions import spherical_to_vector, vector_to_spherical
+from plumbing.errors import UserError
 
 __all__ = ["Pose", "Unreachable", "Kinematics"]
 
@@ -54,7 +55,7 @@ class Pose:
         return spherical_to_vector(self.theta_o, self.phi_o)
 
 
-class Unreachable(ValueError):
+class Unreachable(UserError, ValueError):
     """The rig cannot take this pose; the message says why in one line."""
 
 

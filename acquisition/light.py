@@ -15,7 +15,7 @@ import serial
 from acquisition.clock import Clock, SystemClock
 from acquisition.protocols import DeviceFault, LightStatus
 
-__all__ = ["SerialLight", "LightError"]
+__all__ = ["SerialLight", "ManualLight", "LightError"]
 
 
 class LightError(DeviceFault):
@@ -138,3 +138,39 @@ class SerialLight:
         with self._lock:
             if self._ser.is_open:
                 self._ser.close()
+
+
+class ManualLight:
+    """A lamp switched by hand (`[light] url = "manual"`): no controller, no monitor.
+
+    The runner asks the operator to switch it on (acquisition.operator step "lamp_on") and
+    waits `warmup_s`; `status()` then reports it on at the commanded level with no monitor
+    reading, so calibration cannot correct drift (the samples' metadata and the report say
+    so). `off()` cannot act: it is recorded, and the run log asks for the lamp to be switched
+    off by hand.
+    """
+
+    def __init__(self) -> None:
+        self._on = False
+        self._level = 1.0
+
+    def identify(self) -> str:
+        return "manual lamp (no controller)"
+
+    def on(self) -> None:
+        self._on = True
+
+    def off(self) -> None:
+        self._on = False
+
+    def set_intensity(self, level: float) -> None:
+        level = float(level)
+        if not 0.0 <= level <= 1.0:
+            raise ValueError(f"light intensity must be in [0, 1], got {level}")
+        self._level = level
+
+    def status(self) -> LightStatus:
+        return LightStatus(on=self._on, intensity=self._level, measured=None)
+
+    def close(self) -> None:
+        pass

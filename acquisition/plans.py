@@ -23,10 +23,17 @@ __all__ = [
     "build_refine_plan",
     "lab_time_estimate",
     "expand_grid",
+    "retro_rig_poses",
     "order_poses",
     "park_targets",
     "refine_around_peak",
     "tour_time_s",
+    "MIN_ORIENTATIONS",
+    "anisotropic_poses",
+    "anisotropic_plan_config",
+    "retro_poses",
+    "retro_plan_config",
+    "plan_coverage",
 ]
 
 
@@ -48,6 +55,14 @@ class Plan:
     # For an adaptive plan (phase 1 = this plan): the adaptive config, so the runner goes on to
     # phase 2 once the pre-scan is complete.
     adaptive: PlanConfig | None = None
+
+    @property
+    def retro_gap_deg(self) -> float | None:
+        """The smallest light–camera angle among the poses (deg): how close to retro-reflection
+        the plan gets (set by the rig's occlusion); None for a plan with no pose near retro."""
+        gaps = [_separation_deg(p.pose.deg()) for p in self.poses]
+        g = min(gaps, default=float("inf"))
+        return g if g <= 15.0 else None  # fitting.coverage's retro region: angle ≤ 15°
 
     def lab_time_s(self, readout_s: float, settle_s: float) -> float:
         """Moves + exposures + settling + readout. Exact for fixed brackets (up to the motion
@@ -119,7 +134,22 @@ def _rusinkiewicz(cfg: PlanConfig) -> list[Deg4]:
     return _unique_directions([tuple(float(a) for a in row) for row in deg])
 
 
-def _grid(cfg: PlanConfig) -> list[Deg4]:
+def _separation_deg(deg: Deg4) -> float:
+    """Angle between ω_i and ω_o of a pose (θ_i, φ_i, θ_o, φ_o in degrees)."""
+    ti, pi, to, po = np.radians(deg)
+    c = math.sin(ti) * math.sin(to) * math.cos(pi - po) + math.cos(ti) * math.cos(to)
+    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+
+def _grid(cfg: PlanConfig, rig: RigConfig | None = None) -> list[Deg4]:
+    if cfg.type == "anisotropic":
+        return anisotropic_poses(
+            cfg.theta_i_deg, cfg.theta_o_deg, cfg.orientations_deg, retro_side=cfg.both_sides
+        )
+    if cfg.type == "retro":
+        if rig is None:
+            raise ValueError("a retro plan is laid out around the rig's min_separation_deg")
+        return retro_rig_poses(rig, cfg.theta_i_deg, cfg.retro_offsets_deg)[0]
     if cfg.type == "explicit":
         return [tuple(p) for p in cfg.poses_deg]
     if cfg.type == "inplane":
@@ -153,10 +183,10 @@ def _grid(cfg: PlanConfig) -> list[Deg4]:
     ]
 
 
-def expand_grid(cfg: PlanConfig) -> list[Deg4]:
+def expand_grid(cfg: PlanConfig, rig: RigConfig | None = None) -> list[Deg4]:
     """The plan's poses (θ_i, φ_i, θ_o, φ_o) in degrees, in expansion order (index = position),
-    before reachability checks."""
-    return _grid(cfg)
+    before reachability checks (a retro plan needs the rig it is laid out for)."""
+    return _grid(cfg, rig)
 
 
 def _vector(targets: dict[str, float], roles: list[str]) -> np.ndarray:
@@ -246,7 +276,7 @@ def build_plan(rig: RigConfig, cfg: PlanConfig, start_rad: dict[str, float] | No
     kin = Kinematics(rig)
     poses: list[PlannedPose] = []
     skipped = []
-    for deg in _grid(cfg):
+    for deg in _grid(cfg, rig):
         pose = Pose.from_deg(*deg)
         try:
             targets = kin.targets(pose)
@@ -473,3 +503,142 @@ def lab_time_estimate(rig: RigConfig, cfg: PlanConfig) -> LabTimeEstimate:
 def _deg_key(p: PlannedPose) -> Deg4:
     """A planned pose in degrees, rounded so that float noise does not split incidences."""
     return tuple(round(a, 6) for a in p.pose.deg())  # type: ignore[return-value]
+
+
+# -- plans for the models that need more of the hemisphere (issue 19 item 4) ----------------------
+
+#: Sample orientations (distinct mod 180°) an anisotropic lobe (α_x, α_y, φ₀) needs: its width
+#: along the plane of incidence is α(ψ)² = α_x² cos²(ψ − φ₀) + α_y² sin²(ψ − φ₀), three unknowns,
+#: and a fourth orientation checks the fit (and the peak height fixes α_x α_y on top).
+MIN_ORIENTATIONS = 4
+
+
+def anisotropic_poses(
+    theta_i_deg, theta_o_deg, orientations_deg, *, retro_side: bool = False
+) -> list[Deg4]:
+    """In-plane scans with the sample turned to each orientation ψ (deg, the sample-frame
+    azimuth of the plane of incidence): (θ_i, ψ, θ_o, ψ + 180°) for every θ_i × θ_o, and
+    (θ_i, ψ, θ_o, ψ) on the light's side too if ``retro_side``. A turntable reaches ψ at
+    ``sample_azimuth = −ψ`` (acquisition.kinematics), a two-arm rig with its φ axes. ψ and
+    ψ + 180° probe the same slopes, so ≥ 4 orientations distinct mod 180° are required."""
+    distinct = {round(o % 180.0, 9) for o in orientations_deg}
+    if len(distinct) < MIN_ORIENTATIONS:
+        raise ValueError(
+            f"an anisotropic plan needs ≥ {MIN_ORIENTATIONS} sample orientations distinct mod "
+            f"180 deg; got {sorted(distinct)}"
+        )
+    sides = (180.0, 0.0) if retro_side else (180.0,)
+    poses = [
+        (float(ti), float(psi % 360.0), float(to), float((psi + side) % 360.0))
+        for psi, ti, side, to in itertools.product(
+            orientations_deg, theta_i_deg, sides, theta_o_deg
+        )
+    ]
+    return _unique_directions(poses)
+
+
+def anisotropic_plan_config(
+    name: str,
+    theta_i_deg,
+    theta_o_deg,
+    orientations_deg,
+    exposures_s=(0.002,),
+    *,
+    retro_side: bool = False,
+) -> PlanConfig:
+    """A plan of type ``anisotropic`` (:func:`anisotropic_poses`)."""
+    return PlanConfig(
+        name=name,
+        type="anisotropic",
+        theta_i_deg=tuple(theta_i_deg),
+        theta_o_deg=tuple(theta_o_deg),
+        orientations_deg=tuple(orientations_deg),
+        both_sides=retro_side,
+        exposures_s=tuple(exposures_s),
+    )
+
+
+def _ring_direction(theta_i: float, radius: float, chi: float) -> np.ndarray:
+    """The direction at angle ``radius`` from ω_i = (θ_i, φ = 0) at ring angle χ: χ = 0 toward
+    the normal in the plane of incidence, χ = π away from it, ±π/2 out of the plane."""
+    wi = np.array([math.sin(theta_i), 0.0, math.cos(theta_i)])
+    down = np.array([math.cos(theta_i), 0.0, -math.sin(theta_i)])  # ∂ω/∂θ: toward the horizon
+    side = np.array([0.0, 1.0, 0.0])
+    return math.cos(radius) * wi + math.sin(radius) * (-math.cos(chi) * down + math.sin(chi) * side)
+
+
+def retro_poses(
+    theta_i_deg,
+    min_separation_deg: float,
+    offsets_deg=(0.0, 1.0, 2.0, 4.0, 8.0, 15.0, 25.0),
+    *,
+    ring_angles_deg=(0.0, 180.0),
+    max_theta_deg: float = 85.0,
+) -> tuple[list[Deg4], float]:
+    """Poses around the retro direction ω_o = ω_i as close as the rig allows: the camera on
+    rings of angular radius gap + offset around ω_i (light at φ_i = 0), gap =
+    ``min_separation_deg`` (the rig's light–camera occlusion limit). Ring angles 0° and 180°
+    stay in the plane of incidence (Δφ = 0, or 180° across the normal: any rig); 90°/270°
+    leave it (two-arm rigs). Returns the poses and the gap they leave: the smallest
+    light–camera angle among them — what no rig of this geometry can close."""
+    from fitting.directions import vector_to_spherical
+
+    poses: list[Deg4] = []
+    seps = []
+    for ti, off, chi in itertools.product(theta_i_deg, offsets_deg, ring_angles_deg):
+        r = math.radians(min_separation_deg + off)
+        w = _ring_direction(math.radians(ti), r, math.radians(chi))
+        to, po = vector_to_spherical(w)
+        to_deg, po_deg = float(np.degrees(to)), float(np.degrees(po))
+        if to_deg > max_theta_deg or w[2] <= 0:
+            continue
+        poses.append((float(ti), 0.0, round(to_deg, 9), round(po_deg % 360.0, 9)))
+        seps.append(min_separation_deg + off)
+    if not poses:
+        raise ValueError("no retro-reflection pose lies below max_theta_deg")
+    return _unique_directions(poses), float(min(seps))
+
+
+def retro_rig_poses(rig: RigConfig, theta_i_deg, offsets_deg) -> tuple[list[Deg4], float]:
+    """:func:`retro_poses` for ``rig``: its min_separation_deg and max_theta_deg, out-of-plane
+    rings only on a two-arm rig. Returns the poses and the gap they leave (deg)."""
+    g = rig.geometry
+    rings = (0.0, 180.0) if g.preset == "inplane" else (0.0, 90.0, 180.0, 270.0)
+    return retro_poses(
+        theta_i_deg,
+        g.min_separation_deg,
+        offsets_deg,
+        ring_angles_deg=rings,
+        max_theta_deg=g.max_theta_deg,
+    )
+
+
+def retro_plan_config(
+    rig: RigConfig,
+    theta_i_deg,
+    offsets_deg=(0.0, 1.0, 2.0, 4.0, 8.0, 15.0, 25.0),
+    exposures_s=(0.002,),
+    name: str = "retro",
+) -> tuple[PlanConfig, float]:
+    """A plan of type ``retro`` for ``rig`` and the gap it leaves (deg)."""
+    _, gap = retro_rig_poses(rig, theta_i_deg, offsets_deg)
+    cfg = PlanConfig(
+        name=name,
+        type="retro",
+        theta_i_deg=tuple(theta_i_deg),
+        retro_offsets_deg=tuple(offsets_deg),
+        exposures_s=tuple(exposures_s),
+    )
+    return cfg, gap
+
+
+def plan_coverage(poses_deg, needs):
+    """:func:`fitting.coverage.coverage_report` of a plan's poses (θ_i, φ_i, θ_o, φ_o deg), for
+    the regions ``needs`` (e.g. a registered model's ``fitting.registry.entry(name).needs``)."""
+    from fitting.coverage import coverage_report
+    from fitting.directions import spherical_to_vector
+
+    a = np.radians(np.asarray(list(poses_deg), dtype=np.float64).reshape(-1, 4))
+    return coverage_report(
+        needs, spherical_to_vector(a[:, 0], a[:, 1]), spherical_to_vector(a[:, 2], a[:, 3])
+    )

@@ -8,6 +8,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
+from plumbing.errors import UserError
+
 __all__ = [
     "Axis",
     "LightSource",
@@ -20,7 +22,7 @@ __all__ = [
 ]
 
 
-class DeviceFault(RuntimeError):
+class DeviceFault(UserError, RuntimeError):
     """A device reported a fault (hardware alert, no reply, ...). The runner stops safely."""
 
 

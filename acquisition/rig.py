@@ -3,7 +3,10 @@
 Backends are chosen by URL and registry (like pySerial's `loop://`): the bus URL goes to
 `serial_for_url`, so `dxlsim://NAME` reaches the simulator's emulator once the simulator has
 installed its URL handlers; camera backends are looked up by name in `CAMERA_BACKENDS`, where
-the simulator registers "sim". Runtime code here never imports the simulator.
+the simulator registers "sim", and light backends in `LIGHT_BACKENDS` ("gonio-ascii", "scpi";
+`url = "manual"` is a lamp switched by hand whatever the backend). Each real device library is
+imported only by its factory, so a rig that does not use it does not need it installed. Runtime
+code here never imports the simulator.
 """
 
 from __future__ import annotations
@@ -18,10 +21,20 @@ from acquisition.config import RigConfig
 from acquisition.kinematics import Kinematics
 from acquisition.protocols import Axis, Camera, DeviceFault, LightSource
 
-__all__ = ["Rig", "CAMERA_BACKENDS", "register_camera_backend", "build_rig", "clear_alerts"]
+__all__ = [
+    "Rig",
+    "CAMERA_BACKENDS",
+    "LIGHT_BACKENDS",
+    "register_camera_backend",
+    "build_light",
+    "build_rig",
+    "clear_alerts",
+]
 
 CameraFactory = Callable[[RigConfig, Clock], Camera]
 CAMERA_BACKENDS: dict[str, CameraFactory] = {}
+LightFactory = Callable[[RigConfig, Clock], LightSource]
+LIGHT_BACKENDS: dict[str, LightFactory] = {}
 
 
 def register_camera_backend(name: str, factory: CameraFactory) -> None:
@@ -35,13 +48,46 @@ def _folder(config: RigConfig, clock: Clock) -> Camera:
 
 
 def _gphoto2(config: RigConfig, clock: Clock) -> Camera:
-    from acquisition.cameras import gphoto2_camera  # python-gphoto2 is imported only here
+    from acquisition.cameras_gphoto2 import gphoto2_camera  # python-gphoto2 only here
 
     return gphoto2_camera(config, clock)
 
 
+def _aravis(config: RigConfig, clock: Clock) -> Camera:
+    from acquisition.cameras_aravis import aravis_camera  # PyGObject + Aravis only here
+
+    return aravis_camera(config, clock)
+
+
 register_camera_backend("folder", _folder)
 register_camera_backend("gphoto2", _gphoto2)
+register_camera_backend("aravis", _aravis)
+
+
+def _gonio_ascii(config: RigConfig, clock: Clock) -> LightSource:
+    from acquisition.light import SerialLight
+
+    return SerialLight(config.light.url, clock=clock, baudrate=config.light.baudrate)
+
+
+def _scpi(config: RigConfig, clock: Clock) -> LightSource:
+    from acquisition.light_scpi import scpi_light  # PyVISA only here
+
+    return scpi_light(config, clock)
+
+
+LIGHT_BACKENDS["gonio-ascii"] = _gonio_ascii
+LIGHT_BACKENDS["scpi"] = _scpi
+
+
+def build_light(config: RigConfig, clock: Clock) -> LightSource:
+    """The light source the rig file names: a hand-switched lamp (`url = "manual"`) or the
+    backend's driver, opened."""
+    if config.light.manual:
+        from acquisition.light import ManualLight
+
+        return ManualLight()
+    return LIGHT_BACKENDS[config.light.backend](config, clock)
 
 
 @dataclass
@@ -185,7 +231,6 @@ def build_rig(config: RigConfig, *, reboot_alerted: bool = True) -> Rig:
     resets RAM) loses nothing.
     """
     from acquisition.dynamixel import DynamixelAxis, move_together, read_positions
-    from acquisition.light import SerialLight
 
     clock = get_clock(config.clock)
     bus = _restoring_bus_class()(
@@ -224,7 +269,7 @@ def build_rig(config: RigConfig, *, reboot_alerted: bool = True) -> Rig:
                 profile_velocity=a.profile_velocity,
                 profile_acceleration=a.profile_acceleration,
             )
-        light = SerialLight(config.light.url, clock=clock)
+        light = build_light(config, clock)
         closers.append(getattr(light, "close", lambda: None))
         try:
             factory = CAMERA_BACKENDS[config.camera.backend]

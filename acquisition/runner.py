@@ -29,16 +29,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from acquisition.calibration_capture import CalibrationPhases
 from acquisition.config import PlanConfig
 from acquisition.exposure import FrameStats, frame_stats, next_exposure, pose_signal
 from acquisition.kinematics import Unreachable
+from acquisition.operator import Operator, OperatorDeclined, ask
+from acquisition.operator import step as operator_step
 from acquisition.plans import Plan, PlannedPose, build_refine_plan, park_targets, refine_config
 from acquisition.protocols import DeviceFault, Frame, FrameLevels
 from acquisition.rig import Rig
 from acquisition.runlog import LOG_NAME, RunLog
-from acquisition.store import CaptureRecord, RunStore
+from acquisition.store import CaptureRecord, CaptureStart, RunStore
+from plumbing.progress import Progress, progress
 
-__all__ = ["RunOutcome", "run_acquisition", "stop_requests"]
+__all__ = ["RunOutcome", "run_acquisition", "stop_requests", "safe_stop"]
 
 
 @dataclass
@@ -51,6 +55,7 @@ class RunOutcome:
     lab_time_s: float  # on the rig's clock (virtual for the simulator)
     prescan_poses: int = 0  # adaptive plans: poses of phase 1
     refine_poses: int = 0  # adaptive plans: poses of phase 2 (0 until decided)
+    calibration_captured: int = 0  # new calibration frames (darks, flats, reference) this session
 
 
 class _StopFlag:
@@ -83,10 +88,11 @@ def stop_requests() -> Iterator[_StopFlag]:
             signal.signal(s, h)
 
 
-def _safe_stop(
+def safe_stop(
     rig: Rig, store: RunStore, reason: str, park: bool = True, log: RunLog | None = None
 ) -> None:
-    """Best effort, each step independent: one failing must not prevent the others."""
+    """Make the rig safe and record why: park (unless `park` is False), light off, torque off.
+    Best effort, each step independent: one failing must not prevent the others."""
     steps: list[tuple[str, Callable[[], None]]] = []
     if park:
         steps.append(
@@ -126,6 +132,10 @@ LEVELS_META = "sample_levels"  # frame_meta key: FrameStats of the sample region
 
 class _NeedLevels(RuntimeError):
     pass
+
+
+class _Stopped(Exception):
+    """A stop was requested during a calibration phase."""
 
 
 @dataclass
@@ -248,17 +258,19 @@ def _capture(
     # but before the row is marked done, resume adopts the frame.
     pose = where["pose"]
     cid = store.begin_capture(
-        pose_index=planned.index,
-        bracket_index=b,
-        exposure_s=exposure_s,
-        pose=(pose.theta_i, pose.phi_i, pose.theta_o, pose.phi_o),
-        axes_commanded=planned.targets,
-        axes_measured=where["measured"],
-        light_dir=pose.wi.tolist(),
-        camera_dir=pose.wo.tolist(),
-        suffix=frame.suffix,
-        devices={"axes": where["status"], "light": where["light"].__dict__},
-        lab_time_s=clock.now() - ses.t0,
+        CaptureStart(
+            pose_index=planned.index,
+            bracket_index=b,
+            exposure_s=exposure_s,
+            pose=(pose.theta_i, pose.phi_i, pose.theta_o, pose.phi_o),
+            axes_commanded=planned.targets,
+            axes_measured=where["measured"],
+            light_dir=pose.wi.tolist(),
+            camera_dir=pose.wo.tolist(),
+            suffix=frame.suffix,
+            devices={"axes": where["status"], "light": where["light"].__dict__},
+            lab_time_s=clock.now() - ses.t0,
+        )
     )
     w0 = time.perf_counter()
     store.finish_capture(cid, frame.data, meta)
@@ -417,13 +429,20 @@ def run_acquisition(
     stop: _StopFlag | None = None,
     on_capture: Callable[[int], None] | None = None,
     frame_levels: FrameLevels | None = None,
+    operator: Operator | None = None,
 ) -> RunOutcome:
-    """Capture every frame of `plan` not already done in `store` (both phases of an adaptive
-    plan). `frame_levels` gives the sample region's linear levels of a frame; auto-exposure
-    and adaptive plans need it unless the camera attaches `Frame.levels` itself."""
+    """Capture every frame of `plan` not already done in `store`: its calibration phases
+    (darks, flat, reference target; acquisition.calibration_capture), then the measurement
+    poses (both phases of an adaptive plan). `frame_levels` gives the sample region's linear
+    levels of a frame; auto-exposure and adaptive plans need it unless the camera attaches
+    `Frame.levels` itself. `operator` is asked before every step that needs hands (needed
+    when the plan has calibration phases or the lamp is switched by hand); a "no" stops the
+    rig safely without moving it and raises `OperatorDeclined`."""
     stop = stop or _StopFlag()
-    clock = rig.clock
-    log = RunLog(Path(store.root) / LOG_NAME, clock.now)
+    needs_hands = not plan.config.calibration.empty or rig.config.light.manual
+    if needs_hands and operator is None:
+        raise ValueError("this plan/rig needs an operator (calibration phases or a manual lamp)")
+    log = RunLog(Path(store.root) / LOG_NAME, rig.clock.now)
     adopted = store.adopt_orphans()
     if adopted:
         store.event("resume", f"adopted {adopted} frame(s) written before the interruption")
@@ -431,146 +450,176 @@ def run_acquisition(
     history: dict[int, list[_Done]] = {}
     for rec in store.captures("done"):
         history.setdefault(rec.pose_index, []).append(_Done.of(rec))
-    done_before = store.count("done")
-    t0 = clock.now()
-    ses = _Session(store, rig, stop, log, frame_levels, on_capture, _NoBar(), t0, history, {})
-    reason = "complete"
-    finished = False
-    refine: Plan | None = None
+    ses = _Session(
+        store,
+        rig,
+        stop,
+        log,
+        frame_levels,
+        on_capture,
+        _progress(False, 0, 0),
+        rig.clock.now(),
+        history,
+        {},
+    )
+    calib = CalibrationPhases(
+        store, rig, plan.config, operator, log.emit, lambda: bool(stop.reason)
+    )
+    run = _Run(plan, calib, operator, needs_hands)
     try:
-        # What is left, counted in poses (auto-exposure decides the frames as it goes).
-        todo1 = [p for p in plan.poses if _pose_pending(ses, p, plan.config)]
-        refine_decided = plan.adaptive is not None and store.meta(REFINE_META) is not None
-        if refine_decided:
-            refine = _refinement(ses, plan)
-        n_total = len(plan.poses) + (len(refine.poses) if refine else 0)
-        n_todo = len(todo1) + (
-            sum(_pose_pending(ses, p, refine.config) for p in refine.poses) if refine else 0
-        )
-        store.event("start" if not done_before else "resume", f"{n_todo} pose(s) to capture")
-        log.emit(
-            "session_start" if not done_before else "resume",
-            plan=plan.config.name,
-            poses=n_total,
-            todo=n_todo,
-            frames_done=done_before,
-            exposure_mode=plan.config.exposure_mode,
-            adaptive=plan.adaptive is not None,
-        )
-        for note in getattr(rig, "recovered", []):
-            store.event("recover", note)
-            log.emit("recover", "warning", reason=note)
-        ses.bar = _progress(progress, n_total, n_total - n_todo)
-        rig.torque(True)
-        rig.light.set_intensity(rig.config.light.level)
-        rig.light.on()
-        if rig.config.light.warmup_s and n_todo:
-            clock.sleep(rig.config.light.warmup_s)
-        adaptive = plan.adaptive is not None
-        finished = _run_phase(ses, plan.poses, plan.config, 1, adaptive)
-        if finished and plan.adaptive is not None:
-            if refine is None and not refine_decided:
-                refine = _refinement(ses, plan)
-                ses.bar.grow(len(refine.poses) if refine else 0)
-            if refine is not None:
-                finished = _run_phase(ses, refine.poses, refine.config, 2, adaptive)
+        _measure(ses, run, progress)
         if stop.reason:
-            reason = stop.reason
-    except DeviceFault as exc:
-        reason = f"fault: {exc}"
-        log.emit("fault", "error", pose=ses.current_pose, fault=str(exc))
-    except _NeedLevels as exc:
-        reason = f"fault: {exc}"
-        log.emit("fault", "error", pose=ses.current_pose, fault=str(exc))
-    except KeyboardInterrupt:
-        reason = "interrupted (KeyboardInterrupt)"
-    except OSError as exc:
-        # Disk full, quota, I/O error on the run directory: the frame being written is lost
-        # only if it never reached disk (its row stays pending and is re-captured on resume);
-        # every earlier frame is already safe. Stop the hardware rather than carry on blind.
-        reason = f"storage: {exc.strerror or exc}" + (f" ({exc.filename})" if exc.filename else "")
-        log.emit("fault", "error", pose=ses.current_pose, fault=reason)
-    except sqlite3.Error as exc:  # the manifest could not be written (disk full): as above
-        reason = f"storage: manifest: {exc}"
-        log.emit("fault", "error", pose=ses.current_pose, fault=reason)
+            run.reason = stop.reason
+    except _Stopped:
+        run.reason = stop.reason or "stopped"
+    except OperatorDeclined as exc:
+        # Nothing is moved on the way out (the operator may be at the rig): light and torque
+        # off, the reason recorded; the run stays resumable.
+        safe_stop(rig, store, f"operator: {exc}", park=False, log=log)
+        ses.bar.close()
+        log.close()
+        raise
+    except (DeviceFault, _NeedLevels, OSError, sqlite3.Error, KeyboardInterrupt) as exc:
+        run.reason = _stop_reason(exc)
+        if not isinstance(exc, KeyboardInterrupt):
+            # A device's own words for its fault; a storage fault as the recorded reason.
+            fault = str(exc) if isinstance(exc, DeviceFault | _NeedLevels) else run.reason
+            log.emit("fault", "error", pose=ses.current_pose, fault=fault)
     except Exception as exc:
         # A bug, not a device fault: make the hardware safe first, then let it surface.
-        _safe_stop(rig, store, f"internal error: {type(exc).__name__}: {exc}", log=log)
+        safe_stop(rig, store, f"internal error: {type(exc).__name__}: {exc}", log=log)
         log.close()
         raise
     finally:
         ses.bar.close()
-    lab_time_s = clock.now() - t0
+    return _finish(ses, run, adopted)
+
+
+@dataclass
+class _Run:
+    """What one session of a run is doing, and how far it got."""
+
+    plan: Plan
+    calib: CalibrationPhases
+    operator: Operator | None
+    needs_hands: bool
+    reason: str = "complete"
+    finished: bool = False
+    refine: Plan | None = None
+
+
+def _stop_reason(exc: BaseException) -> str:
+    """The recorded reason for a stop by `exc` (a fault of a device, the storage, or Ctrl-C)."""
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted (KeyboardInterrupt)"
+    if isinstance(exc, DeviceFault | _NeedLevels):
+        return f"fault: {exc}"
+    if isinstance(exc, sqlite3.Error):  # the manifest could not be written (disk full)
+        return f"storage: manifest: {exc}"
+    # Disk full, quota, I/O error on the run directory: the frame being written is lost only
+    # if it never reached disk (its row stays pending and is re-captured on resume); every
+    # earlier frame is already safe. Stop the hardware rather than carry on blind.
+    where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+    return f"storage: {getattr(exc, 'strerror', None) or exc}" + where
+
+
+def _measure(ses: _Session, run: _Run, progress: bool) -> None:
+    """Calibration phases, lamp on, then the plan's poses (both phases of an adaptive plan)."""
+    store, rig, plan, calib = ses.store, ses.rig, run.plan, run.calib
+    # What is left, counted in poses (auto-exposure decides the frames as it goes).
+    todo1 = [p for p in plan.poses if _pose_pending(ses, p, plan.config)]
+    refine_decided = plan.adaptive is not None and store.meta(REFINE_META) is not None
+    if refine_decided:
+        run.refine = _refinement(ses, plan)
+    refine = run.refine
+    n_total = len(plan.poses) + (len(refine.poses) if refine else 0)
+    n_todo = len(todo1) + (
+        sum(_pose_pending(ses, p, refine.config) for p in refine.poses) if refine else 0
+    )
+    done_before = store.count("done")
+    store.event("start" if not done_before else "resume", f"{n_todo} pose(s) to capture")
+    ses.log.emit(
+        "session_start" if not done_before else "resume",
+        plan=plan.config.name,
+        poses=n_total,
+        todo=n_todo,
+        frames_done=done_before,
+        exposure_mode=plan.config.exposure_mode,
+        adaptive=plan.adaptive is not None,
+    )
+    for note in getattr(rig, "recovered", []):
+        store.event("recover", note)
+        ses.log.emit("recover", "warning", reason=note)
+    # Darks and the flat need neither the lamp nor a servo: they come first, so an operator
+    # who declines stops the run before anything has moved.
+    if not calib.before_light():
+        raise _Stopped()
+    ses.bar = _progress(progress, n_total, n_total - n_todo)
+    _lamp_on(rig, run.operator, warm_up=bool(n_todo or calib.reference_todo()))
+    ref = plan.config.calibration.reference
+    if ref is not None and not calib.reference(ref):
+        raise _Stopped()
+    if run.needs_hands:
+        calib.ready_for_measurement()
+    adaptive = plan.adaptive is not None
+    run.finished = _run_phase(ses, plan.poses, plan.config, 1, adaptive)
+    if run.finished and adaptive:
+        if run.refine is None and not refine_decided:
+            run.refine = _refinement(ses, plan)
+            ses.bar.grow(len(run.refine.poses) if run.refine else 0)
+        if run.refine is not None:
+            run.finished = _run_phase(ses, run.refine.poses, run.refine.config, 2, adaptive)
+
+
+def _lamp_on(rig: Rig, operator: Operator | None, *, warm_up: bool) -> None:
+    """Torque on, the lamp at the run's level and on (asked for, for a manual lamp), warmed up
+    when there is something left to capture."""
+    rig.torque(True)
+    rig.light.set_intensity(rig.config.light.level)
+    if rig.config.light.manual:
+        ask(operator, operator_step("lamp_on", warmup_s=rig.config.light.warmup_s))
+    rig.light.on()
+    if rig.config.light.warmup_s and warm_up:
+        rig.clock.sleep(rig.config.light.warmup_s)
+
+
+def _finish(ses: _Session, run: _Run, adopted: int) -> RunOutcome:
+    """Make the rig safe, record the stop and the lab time, mark a complete run complete."""
+    store, rig, log, plan = ses.store, ses.rig, ses.log, run.plan
+    lab_time_s = rig.clock.now() - ses.t0
     total_done = store.count("done")
-    complete = reason == "complete" and finished
-    n_pre = len(plan.poses) if plan.adaptive is not None else 0
-    n_ref = len(refine.poses) if refine is not None else 0
+    complete = run.reason == "complete" and run.finished
+    reason = run.reason
     if complete:
-        _safe_stop(rig, store, "complete", log=log)
+        safe_stop(rig, store, "complete", log=log)
         store.set_meta("lab_time_s", str(lab_time_s + float(store.meta("lab_time_s") or 0)))
         store.mark_complete()
         log.emit("complete", frames=total_done, captured=ses.captured, lab_time_s=lab_time_s)
     else:
         if reason == "complete":
             reason = f"incomplete: {total_done} capture(s) done, poses remain"
-        _safe_stop(rig, store, reason, log=log)
+        safe_stop(rig, store, reason, log=log)
         try:
             store.set_meta("lab_time_s", str(lab_time_s + float(store.meta("lab_time_s") or 0)))
         except Exception as exc:  # disk full: lab time is bookkeeping, the frames are safe
             _record(store, "warning", f"lab time not recorded: {exc}")
     log.emit("session_end", reason=reason, captured=ses.captured, lab_time_s=lab_time_s)
     log.close()
-    return RunOutcome(complete, ses.captured, adopted, total_done, reason, lab_time_s, n_pre, n_ref)
+    return RunOutcome(
+        complete,
+        ses.captured,
+        adopted,
+        total_done,
+        reason,
+        lab_time_s,
+        len(plan.poses) if plan.adaptive is not None else 0,
+        len(run.refine.poses) if run.refine is not None else 0,
+        calibration_captured=run.calib.captured,
+    )
 
 
-class _Bar:
-    def __init__(self, total: int, completed: int) -> None:
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
-
-        self._p = Progress(
-            TextColumn("acquiring (poses)"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeElapsedColumn(),
-            TextColumn("eta"),
-            TimeRemainingColumn(),
-            transient=False,
-        )
-        self._task = self._p.add_task("acquire", total=total, completed=completed)
-        self._p.start()
-
-    def advance(self) -> None:
-        self._p.advance(self._task)
-
-    def grow(self, n: int) -> None:
-        """More poses to come (an adaptive plan's phase 2, once decided)."""
-        task = self._p.tasks[0]
-        self._p.update(self._task, total=(task.total or 0) + n)
-
-    def close(self) -> None:
-        self._p.stop()
-
-
-class _NoBar:
-    def advance(self) -> None:
-        pass
-
-    def grow(self, n: int) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _progress(enabled: bool, total: int, completed: int) -> _Bar | _NoBar:
-    return _Bar(total, completed) if enabled else _NoBar()
+def _progress(enabled: bool, total: int, completed: int) -> Progress:
+    return progress("acquiring (poses)", total, completed=completed, enabled=enabled)
 
 
 def lab_time_estimate_s(plan: Plan, rig_readout_s: float, settle_s: float) -> float:

@@ -28,22 +28,27 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fitting.atomic import atomic_write_bytes as _atomic_write_bytes
+from plumbing.atomic import atomic_write_bytes
+from plumbing.errors import UserError
+from plumbing.hashing import sha256_file
 
 __all__ = [
     "SCHEMA_VERSION",
     "RunStoreError",
     "RunStore",
     "CaptureRecord",
-    "atomic_write_bytes",
+    "CaptureStart",
+    "CalibrationRecord",
+    "CALIBRATION_KINDS",
     "sha256_file",
     "now_iso",
 ]
 
-SCHEMA_VERSION = 1
+# 2: calibration captures (darks, flats, reference target) in the manifest's own table.
+SCHEMA_VERSION = 2
 
 
-class RunStoreError(RuntimeError):
+class RunStoreError(UserError, RuntimeError):
     """A run directory cannot be used as asked. One-line message."""
 
 
@@ -63,20 +68,6 @@ def _unreadable(db: Path, exc: Exception) -> str:
 
 def now_iso() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
-
-
-def atomic_write_bytes(path: Path, data: bytes, *, overwrite: bool = False) -> None:
-    """Temp file in the same directory, fsync, then link (no overwrite, the default for run
-    data) or replace."""
-    _atomic_write_bytes(path, data, overwrite=overwrite)
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 _SCHEMA = """
@@ -110,6 +101,85 @@ CREATE TABLE IF NOT EXISTS events (
 );
 """
 
+# Calibration captures (schema 2): the same pending → frame → done protocol as `captures`.
+# `take` counts recordings of one kind: 1 for the run's own phases, +1 for each retake by
+# `gonio capture KIND RUN`; calibration uses the newest complete take, older takes stay on
+# disk and in the manifest. `meta` (JSON) holds what the kind needs (reference: pose index,
+# measured axis angles, light monitor reading).
+_CALIBRATION_SCHEMA = """
+CREATE TABLE IF NOT EXISTS calibration_captures (
+    id INTEGER PRIMARY KEY,
+    kind TEXT NOT NULL,
+    take INTEGER NOT NULL,
+    seq INTEGER NOT NULL,
+    exposure_s REAL NOT NULL,
+    frame_path TEXT NOT NULL UNIQUE,
+    sha256 TEXT,
+    status TEXT NOT NULL CHECK (status IN ('pending', 'done')),
+    started_at TEXT NOT NULL,
+    finished_at TEXT,
+    meta TEXT,
+    frame_meta TEXT,
+    note TEXT,
+    UNIQUE (kind, take, seq)
+);
+CREATE TABLE IF NOT EXISTS calibration_takes (
+    kind TEXT NOT NULL,
+    take INTEGER NOT NULL,
+    expected INTEGER NOT NULL,
+    started_at TEXT NOT NULL,
+    description TEXT,
+    PRIMARY KEY (kind, take)
+);
+"""
+CALIBRATION_KINDS = ("dark", "flat", "reference")
+
+
+@dataclass(frozen=True)
+class CaptureStart:
+    """Everything known about a capture before its frame exists (its pending manifest row):
+    the pose and bracket, the exposure, the directions (rad) and axis angles commanded and
+    measured, the frame's suffix, the devices' status and the lab time since the session."""
+
+    pose_index: int
+    bracket_index: int
+    exposure_s: float
+    pose: tuple[float, float, float, float]
+    axes_commanded: dict[str, float]
+    axes_measured: dict[str, float]
+    light_dir: list[float]
+    camera_dir: list[float]
+    suffix: str
+    devices: dict[str, Any]
+    lab_time_s: float
+
+
+@dataclass
+class CalibrationRecord:
+    """One calibration capture (a dark, flat or reference-target frame)."""
+
+    id: int
+    kind: str
+    take: int
+    seq: int
+    exposure_s: float
+    frame_path: str
+    sha256: str | None
+    status: str
+    meta: dict[str, Any]
+    frame_meta: dict[str, Any]
+
+    def entry(self) -> dict[str, Any]:
+        """As a plain dict: kind, exposure_s, path, sha256, and the kind's own keys (meta)."""
+        return {
+            **self.meta,
+            "kind": self.kind,
+            "take": self.take,
+            "exposure_s": self.exposure_s,
+            "path": self.frame_path,
+            "sha256": self.sha256,
+        }
+
 
 @dataclass
 class CaptureRecord:
@@ -132,7 +202,8 @@ class CaptureRecord:
 
 
 class RunStore:
-    """One run directory. Use `create` for a new run, `open` for an existing one."""
+    """One run directory. Use `create` for a new run, `open` for an existing one; a context
+    manager (`with RunStore.open(run) as store:`) closes it."""
 
     def __init__(self, root: Path, conn: sqlite3.Connection) -> None:
         self.root = root
@@ -165,7 +236,12 @@ class RunStore:
         return store
 
     @classmethod
-    def open(cls, root: Path | str, *, writable: bool = False) -> RunStore:
+    def open(
+        cls, root: Path | str, *, writable: bool = False, calibration_only: bool = False
+    ) -> RunStore:
+        """Open a run. `writable` refuses a complete run — except with `calibration_only`,
+        for adding a calibration take (`gonio capture`) to a finished run: that adds frames
+        and rows, and never changes a measurement capture."""
         root = Path(root)
         if not (root / "manifest.sqlite").exists() or not (root / "run.toml").exists():
             raise RunStoreError(
@@ -181,8 +257,13 @@ class RunStore:
                 raise RunStoreError(f"{root}/manifest.sqlite: no schema version; not a gonio run")
             if int(version) > SCHEMA_VERSION:
                 raise RunStoreError(_newer(f"{root}/manifest.sqlite", version))
-            if writable and store.complete:
+            if writable and store.complete and not calibration_only:
                 raise RunStoreError(f"{root}: run is complete; refusing to modify it")
+            if writable:
+                # A schema-1 run being written to gains the calibration tables (additive).
+                store._db.executescript(_CALIBRATION_SCHEMA)
+                if int(version) < SCHEMA_VERSION:
+                    store.set_meta("schema_version", str(SCHEMA_VERSION))
         except BaseException:
             store.close()
             raise
@@ -202,6 +283,7 @@ class RunStore:
                 conn.execute("PRAGMA synchronous=FULL")
             if create:
                 conn.executescript(_SCHEMA)
+                conn.executescript(_CALIBRATION_SCHEMA)
             else:
                 # A reader must not create tables in someone else's file: check instead.
                 names = {r[0] for r in conn.execute("SELECT name FROM sqlite_master")}
@@ -242,6 +324,12 @@ class RunStore:
 
     def close(self) -> None:
         self._db.close()
+
+    def __enter__(self) -> RunStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     # -- meta --------------------------------------------------------------------------------
     def meta(self, key: str) -> str | None:
@@ -305,28 +393,14 @@ class RunStore:
     def frame_name(self, pose_index: int, bracket_index: int, suffix: str) -> str:
         return f"frames/p{pose_index:05d}_b{bracket_index:02d}{suffix}"
 
-    def begin_capture(
-        self,
-        *,
-        pose_index: int,
-        bracket_index: int,
-        exposure_s: float,
-        pose: tuple[float, float, float, float],
-        axes_commanded: dict[str, float],
-        axes_measured: dict[str, float],
-        light_dir: list[float],
-        camera_dir: list[float],
-        suffix: str,
-        devices: dict[str, Any],
-        lab_time_s: float,
-    ) -> int:
+    def begin_capture(self, c: CaptureStart) -> int:
         """Insert (or refresh) the pending row for a capture; returns its id."""
-        rel = self.frame_name(pose_index, bracket_index, suffix)
+        rel = self.frame_name(c.pose_index, c.bracket_index, c.suffix)
         with self._db:
             self._db.execute(
                 "DELETE FROM captures WHERE pose_index = ? AND bracket_index = ? "
                 "AND status = 'pending'",
-                (pose_index, bracket_index),
+                (c.pose_index, c.bracket_index),
             )
             cur = self._db.execute(
                 "INSERT INTO captures (pose_index, bracket_index, exposure_s, theta_i, phi_i, "
@@ -334,34 +408,35 @@ class RunStore:
                 "status, started_at, devices, lab_time_s) "
                 "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 'pending', ?, ?, ?)",
                 (
-                    pose_index,
-                    bracket_index,
-                    exposure_s,
-                    *pose,
-                    json.dumps(axes_commanded),
-                    json.dumps(axes_measured),
-                    json.dumps(light_dir),
-                    json.dumps(camera_dir),
+                    c.pose_index,
+                    c.bracket_index,
+                    c.exposure_s,
+                    *c.pose,
+                    json.dumps(c.axes_commanded),
+                    json.dumps(c.axes_measured),
+                    json.dumps(c.light_dir),
+                    json.dumps(c.camera_dir),
                     rel,
                     now_iso(),
-                    json.dumps(devices, default=str),
-                    lab_time_s,
+                    json.dumps(c.devices, default=str),
+                    c.lab_time_s,
                 ),
             )
         return int(cur.lastrowid)
 
-    def finish_capture(self, capture_id: int, data: bytes, frame_meta: dict[str, Any]) -> str:
-        """Write the frame safely, then mark the row done. Returns the SHA-256."""
+    def _write_frame(self, table: str, row_id: int, data: bytes, frame_meta: dict) -> str:
+        """Write the frame of a pending row of `table` safely, then mark the row done.
+
+        A frame from an interrupted attempt already in place is kept (it is data that was
+        captured), and the new one is stored beside it rather than over it."""
         (rel,) = self._db.execute(
-            "SELECT frame_path FROM captures WHERE id = ?", (capture_id,)
+            f"SELECT frame_path FROM {table} WHERE id = ?", (row_id,)
         ).fetchone()
-        path = self._rel_path(rel, capture_id)
+        path = self._rel_path(rel, row_id)
         digest = hashlib.sha256(data).hexdigest()
         try:
             atomic_write_bytes(path, data, overwrite=False)
         except FileExistsError:
-            # A frame from an interrupted attempt is already in place: keep it (it is data
-            # that was captured), and store the new one beside it rather than overwrite.
             if sha256_file(path) != digest:
                 k = 1
                 while (alt := path.with_name(f"{path.stem}.r{k}{path.suffix}")).exists():
@@ -370,30 +445,36 @@ class RunStore:
                 rel = str(alt.relative_to(self.root))
         with self._db:
             self._db.execute(
-                "UPDATE captures SET status = 'done', sha256 = ?, finished_at = ?, "
+                f"UPDATE {table} SET status = 'done', sha256 = ?, finished_at = ?, "
                 "frame_meta = ?, frame_path = ? WHERE id = ?",
-                (digest, now_iso(), json.dumps(frame_meta, default=str), rel, capture_id),
+                (digest, now_iso(), json.dumps(frame_meta, default=str), rel, row_id),
             )
         return digest
 
+    def finish_capture(self, capture_id: int, data: bytes, frame_meta: dict[str, Any]) -> str:
+        """Write the frame safely, then mark the row done. Returns the SHA-256."""
+        return self._write_frame("captures", capture_id, data, frame_meta)
+
     def adopt_orphans(self) -> int:
-        """Pending rows whose frame made it to disk are adopted (marked done with the
-        checksum of the file on disk). Returns how many were adopted."""
-        with self._reading():
-            rows = list(
-                self._db.execute("SELECT id, frame_path FROM captures WHERE status = 'pending'")
-            )
+        """Pending rows (measurement and calibration) whose frame made it to disk are adopted
+        (marked done with the checksum of the file on disk). Returns how many were adopted."""
+        tables = ["captures"] + (["calibration_captures"] if self._has_calibration_table() else [])
         adopted = 0
-        for cid, rel in rows:
-            path = self._rel_path(rel, cid)
-            if path.exists():
-                with self._db:
-                    self._db.execute(
-                        "UPDATE captures SET status = 'done', sha256 = ?, finished_at = ?, "
-                        "note = 'adopted on resume' WHERE id = ?",
-                        (sha256_file(path), now_iso(), cid),
-                    )
-                adopted += 1
+        for table in tables:
+            with self._reading():
+                rows = list(
+                    self._db.execute(f"SELECT id, frame_path FROM {table} WHERE status = 'pending'")
+                )
+            for cid, rel in rows:
+                path = self._rel_path(rel, cid)
+                if path.exists():
+                    with self._db:
+                        self._db.execute(
+                            f"UPDATE {table} SET status = 'done', sha256 = ?, finished_at = ?, "
+                            "note = 'adopted on resume' WHERE id = ?",
+                            (sha256_file(path), now_iso(), cid),
+                        )
+                    adopted += 1
         return adopted
 
     def captures(self, status: str | None = "done") -> Iterator[CaptureRecord]:
@@ -451,12 +532,157 @@ class RunStore:
         return int(n)
 
     def verify(self) -> list[str]:
-        """Check every done frame against its SHA-256; return a list of problems."""
+        """Check every done frame (measurement and calibration) against its SHA-256; return a
+        list of problems."""
         problems = []
-        for rec in self.captures("done"):
-            path = self.root / rec.frame_path  # checked to be inside the run by captures()
+        done = [(r.frame_path, r.sha256) for r in self.captures("done")]
+        done += [(r.frame_path, r.sha256) for r in self.calibration_captures()]
+        for rel, sha in done:
+            path = self.root / rel  # checked to be inside the run when listed
             if not path.exists():
-                problems.append(f"{rec.frame_path}: missing")
-            elif sha256_file(path) != rec.sha256:
-                problems.append(f"{rec.frame_path}: checksum mismatch")
+                problems.append(f"{rel}: missing")
+            elif sha256_file(path) != sha:
+                problems.append(f"{rel}: checksum mismatch")
         return problems
+
+    # -- calibration captures (darks, flats, reference target) ------------------------------
+    def _has_calibration_table(self) -> bool:
+        with self._reading():
+            row = self._db.execute(
+                "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'calibration_captures'"
+            ).fetchone()
+        return row is not None
+
+    def calibration_take(self, kind: str) -> int:
+        """The newest take of `kind` (0 when none was started)."""
+        if not self._has_calibration_table():
+            return 0
+        with self._reading():
+            (n,) = self._db.execute(
+                "SELECT COALESCE(MAX(take), 0) FROM calibration_takes WHERE kind = ?", (kind,)
+            ).fetchone()
+        return int(n)
+
+    def start_calibration_take(
+        self, kind: str, expected: int, description: dict[str, Any] | None = None
+    ) -> int:
+        """Open a new take of `kind` expecting `expected` frames; returns its number."""
+        if kind not in CALIBRATION_KINDS:
+            raise ValueError(f"calibration kind must be one of {CALIBRATION_KINDS}")
+        take = self.calibration_take(kind) + 1
+        with self._db:
+            self._db.execute(
+                "INSERT INTO calibration_takes VALUES (?, ?, ?, ?, ?)",
+                (kind, take, int(expected), now_iso(), json.dumps(description or {})),
+            )
+        return take
+
+    def set_take_description(self, kind: str, take: int, description: dict[str, Any]) -> None:
+        with self._db:
+            self._db.execute(
+                "UPDATE calibration_takes SET description = ? WHERE kind = ? AND take = ?",
+                (json.dumps(description, default=str), kind, take),
+            )
+
+    def calibration_take_info(self, kind: str, take: int) -> dict[str, Any] | None:
+        """{"expected": n, "done": k, "description": {...}} of a take, or None."""
+        if not self._has_calibration_table():
+            return None
+        with self._reading():
+            row = self._db.execute(
+                "SELECT expected, description FROM calibration_takes WHERE kind = ? AND take = ?",
+                (kind, take),
+            ).fetchone()
+            if row is None:
+                return None
+            (done,) = self._db.execute(
+                "SELECT COUNT(*) FROM calibration_captures WHERE kind = ? AND take = ? "
+                "AND status = 'done'",
+                (kind, take),
+            ).fetchone()
+        return {"expected": int(row[0]), "done": int(done), "description": json.loads(row[1])}
+
+    def calibration_frame_name(self, kind: str, take: int, seq: int, suffix: str) -> str:
+        return f"calibration/{kind}/t{take:02d}_{seq:04d}{suffix}"
+
+    def begin_calibration(
+        self,
+        kind: str,
+        take: int,
+        seq: int,
+        exposure_s: float,
+        suffix: str,
+        meta: dict[str, Any] | None = None,
+    ) -> int:
+        """Insert (or refresh) the pending row of one calibration frame; returns its id."""
+        rel = self.calibration_frame_name(kind, take, seq, suffix)
+        (self.root / rel).parent.mkdir(parents=True, exist_ok=True)
+        with self._db:
+            self._db.execute(
+                "DELETE FROM calibration_captures WHERE kind = ? AND take = ? AND seq = ? "
+                "AND status = 'pending'",
+                (kind, take, seq),
+            )
+            cur = self._db.execute(
+                "INSERT INTO calibration_captures (kind, take, seq, exposure_s, frame_path, "
+                "status, started_at, meta) VALUES (?, ?, ?, ?, ?, 'pending', ?, ?)",
+                (kind, take, seq, exposure_s, rel, now_iso(), json.dumps(meta or {}, default=str)),
+            )
+        return int(cur.lastrowid)
+
+    def finish_calibration(self, row_id: int, data: bytes, frame_meta: dict[str, Any]) -> str:
+        """Write the calibration frame safely (never over an existing file), mark it done."""
+        return self._write_frame("calibration_captures", row_id, data, frame_meta)
+
+    def calibration_captures(
+        self, kind: str | None = None, take: int | None = None, status: str = "done"
+    ) -> list[CalibrationRecord]:
+        """Calibration frames (all kinds, or one kind; all takes, or one), in take/seq order."""
+        if not self._has_calibration_table():
+            return []
+        q = (
+            "SELECT id, kind, take, seq, exposure_s, frame_path, sha256, status, meta, "
+            "frame_meta FROM calibration_captures WHERE status = ?"
+        )
+        args: list[Any] = [status]
+        if kind is not None:
+            q += " AND kind = ?"
+            args.append(kind)
+        if take is not None:
+            q += " AND take = ?"
+            args.append(take)
+        with self._reading():
+            rows = self._db.execute(q + " ORDER BY kind, take, seq", args).fetchall()
+        out = []
+        for r in rows:
+            self._rel_path(r[5], r[0])
+            try:
+                meta, fmeta = json.loads(r[8] or "{}"), json.loads(r[9] or "{}")
+            except ValueError as exc:
+                raise RunStoreError(
+                    f"{self.root}/manifest.sqlite: calibration capture {r[0]} is damaged "
+                    f"({exc}); restore the manifest from a backup"
+                ) from None
+            out.append(CalibrationRecord(*r[:8], meta, fmeta))
+        return out
+
+    def usable_calibration_take(self, kind: str) -> tuple[int, str | None]:
+        """The newest *complete* take of `kind` (0 if none) and a note when a newer take is
+        incomplete (an interrupted retake: the older complete one is used)."""
+        newest = self.calibration_take(kind)
+        for take in range(newest, 0, -1):
+            info = self.calibration_take_info(kind, take)
+            if info is not None and info["done"] >= info["expected"]:
+                note = None
+                if take != newest:
+                    note = (
+                        f"{kind} take {newest} is incomplete; using take {take} (resume with "
+                        f"`gonio capture {kind}`)"
+                    )
+                return take, note
+        if newest:
+            return 0, f"{kind} frames incomplete (take {newest}); resume the run or retake"
+        return 0, None
+
+    def calibration_done_seqs(self, kind: str, take: int) -> set[int]:
+        return {r.seq for r in self.calibration_captures(kind, take)}

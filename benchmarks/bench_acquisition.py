@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import reachable_poses
 
 from acquisition.config import PlanConfig, load_plan, load_rig
 from acquisition.kinematics import Kinematics, Pose, Unreachable
@@ -75,27 +76,17 @@ def acquisition_wall_time(n_poses: int = 500, root: str | None = None) -> dict[s
     """Wall time of one simulated acquisition into a temporary run under `root`. Every frame
     costs fsyncs (frame, directory, WAL commit with synchronous=FULL), so the figure depends
     on the disk as much as on the code: the benchmark reports a tmpfs run and a disk run."""
-    from gonio.pipeline import acquire
+    from gonio.pipeline import AcquireSpec, acquire
 
     rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
-    kin = Kinematics(rig)
-    poses = []
-    for ti, to, dp in itertools.product(
+    grid = itertools.product(
         np.arange(5.0, 80.0, 5.0), np.arange(0.0, 85.0, 5.0), (0.0, 45.0, 90.0, 135.0, 180.0)
-    ):
-        try:
-            kin.check(Pose.from_deg(ti, 0.0, to, dp))
-        except Unreachable:
-            continue
-        poses.append((float(ti), 0.0, float(to), float(dp)))
-        if len(poses) == n_poses:
-            break
+    )
+    poses = reachable_poses(rig, grid, n_poses)
     cfg = PlanConfig(name="bench", type="explicit", poses_deg=tuple(poses), exposures_s=(0.002,))
     with tempfile.TemporaryDirectory(dir=root) as tmp:
         t0 = time.perf_counter()
-        res = acquire(
-            None, None, Path(tmp) / "run", rig_config=rig, plan_config=cfg, progress=False
-        )
+        res = acquire(Path(tmp) / "run", AcquireSpec(rig=rig, plan=cfg, progress=False))
         wall = time.perf_counter() - t0
     assert res.outcome.complete, res.outcome.reason
     return {

@@ -20,12 +20,9 @@ EXPOSURES_S = [0.001, 0.004, 0.016]
 
 
 def _make_run(out: Path, scene_path: Path) -> None:
-    from acquisition.clock import VirtualClock
     from acquisition.config import PlanConfig
-    from calibration.darks import record_frames
-    from gonio.pipeline import acquire
-    from simulator.camera import SimCamera
-    from simulator.scene import load_scene
+    from acquisition.operator import AutoOperator
+    from gonio.pipeline import AcquireSpec, acquire
 
     # 5 × 10 × 10 = 500 poses, all reachable (θ ≤ 72°, Δφ ≥ 20° keeps the arms apart).
     plan = PlanConfig.model_validate(
@@ -37,20 +34,34 @@ def _make_run(out: Path, scene_path: Path) -> None:
             "delta_phi_deg": [20.0, 36.0, 52.0, 68.0, 84.0, 100.0, 116.0, 132.0, 148.0, 180.0],
             "exposures_s": EXPOSURES_S,
             "order": "nearest",
+            # Master darks per exposure, a flat at the longest, the reference target: the
+            # run's own calibration phases.
+            "calibration": {"dark": {"count": 16}, "flat": {"count": 32}, "reference": {}},
         }
     )
     acquire(
-        REPO / "configs" / "rigs" / "sim.toml",
-        None,
         out,
-        scene_path=scene_path,
-        progress=False,
-        plan_config=plan,
+        AcquireSpec(
+            rig=REPO / "configs" / "rigs" / "sim.toml",
+            scene=scene_path,
+            progress=False,
+            plan=plan,
+            operator=AutoOperator(),
+        ),
     )
-    scene = load_scene(scene_path)
-    cam = SimCamera(scene, VirtualClock(), lambda: (None, None), lambda: 1.0)
-    record_frames(out, "dark", cam.capture_dark, EXPOSURES_S, 16)
-    record_frames(out, "flat", cam.capture_flat, [EXPOSURES_S[-1]], 32)
+
+
+def _complete(run: Path) -> bool:
+    from acquisition.store import RunStore, RunStoreError
+
+    try:
+        store = RunStore.open(run)
+    except RunStoreError:
+        return False
+    try:
+        return store.complete and bool(store.calibration_captures("dark"))
+    finally:
+        store.close()
 
 
 def bench(cache: Path, scene_path: Path, profile: bool = False) -> dict:
@@ -58,7 +69,7 @@ def bench(cache: Path, scene_path: Path, profile: bool = False) -> dict:
     from calibration.reduce import ReduceOptions, reduce_run
 
     run = cache / "run"
-    if not (run / "calibration" / "frames.json").exists():
+    if not _complete(run):
         shutil.rmtree(cache, ignore_errors=True)
         cache.mkdir(parents=True)
         t0 = time.perf_counter()

@@ -17,7 +17,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import random_positions
 
+from fitting.data_paths import find_data
 from simulator.planner import plan_effects
 from simulator.render import Renderer
 from simulator.scene import Scene, SensorSpec, load_scene
@@ -25,7 +27,8 @@ from simulator.sensor import Sensor
 
 __all__ = ["main", "effect_scenes", "bench_effects", "bench_stages"]
 
-PAPER = "/work/shared/data/rgl_brdf/paper_white_rgb.bsdf"
+# The repository's own copy, found by the data resolver (data/README.md; $GONIO_DATA first).
+PAPER = "rgl_brdf/paper_white_rgb.bsdf"
 SCENES = Path(__file__).resolve().parent.parent / "configs" / "scenes"
 
 
@@ -40,7 +43,9 @@ def effect_scenes() -> dict[str, dict]:
         "path_integrator (rim ρ=0.5, 1 spp)": {
             "holder": {"rim_height_m": 0.005, "reflectance": [0.5, 0.5, 0.5]},
         },
-        "material: measured paper": {"material": {"type": "measured", "filename": PAPER}},
+        "material: measured paper": {
+            "material": {"type": "measured", "filename": str(find_data(PAPER))}
+        },
         "material: model torrance-sparrow": {
             "material": {
                 "type": "model",
@@ -48,18 +53,6 @@ def effect_scenes() -> dict[str, dict]:
             }
         },
     }
-
-
-def _poses(n: int, rng: np.random.Generator):
-    th_i = rng.uniform(0, np.radians(70), n)
-    th_o = rng.uniform(0, np.radians(70), n)
-    ph_i = rng.uniform(0, 2 * np.pi, n)
-    ph_o = rng.uniform(0, 2 * np.pi, n)
-
-    def sph(t, p, r):
-        return r * np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
-
-    return sph(th_i, ph_i, 0.5), sph(th_o, ph_o, 0.7)
 
 
 def _renderer(overrides: dict, variant: str | None, spp: int) -> Renderer:
@@ -77,7 +70,7 @@ def bench_effects(n: int, variant: str | None, spps=(1, 16)) -> dict[tuple[str, 
     warmed first (the first render compiles kernels); the minimum drops the stalls a
     shared machine causes.
     """
-    lights, cams = _poses(n, np.random.default_rng(0))
+    lights, cams = random_positions(n, np.random.default_rng(0), 70)
     out = {}
     for name, ov in effect_scenes().items():
         for spp in spps:
@@ -99,7 +92,7 @@ def render_capture_ms(scene: Scene, n: int, variant: str | None) -> float:
     """minimum ms of render + sensor capture for a whole scene at its planned settings."""
     r = Renderer(scene, variant=variant)
     sensor = Sensor(scene.sensor, scene.camera.f_number, rng=0, intrinsics=r.intrinsics)
-    lights, cams = _poses(n, np.random.default_rng(0))
+    lights, cams = random_positions(n, np.random.default_rng(0), 70)
     sensor.capture(r.render(lights[0], cams[0]), 0.01)
     times = []
     for k in range(n):

@@ -213,39 +213,51 @@ def fuzz_driver(n_packets: int, seed: int = 0) -> dict:
         )
         for mode in ("stop", "reboot")
     ]
+    try:
+
+        def call(rng_: np.random.Generator):
+            op, fn = DRIVER_OPS[int(rng_.integers(0, len(DRIVER_OPS)))]
+            drv = drivers[int(rng_.integers(0, 2))]
+            return op, lambda: fn(drv), lambda: setattr(drv.port, "is_using", False)
+
+        r = _fuzz_calls(dev, n_packets, rng, call, _value_ok, CLASSIFIED)
+    finally:
+        for d in drivers:
+            d.close()
+        unregister_bus(name)
+    return {**r, "kinds": dict(dev.kinds)}
+
+
+def _fuzz_calls(dev, limit: int, rng, pick, value_ok, classified) -> dict:  # noqa: ANN001
+    """Driver calls picked by `pick(rng)` → (op, call, after) until the mangling device has
+    answered `limit` times: counted outcomes, malformed values (`value_ok(op, v)` False), the
+    longest call, hangs (the watchdog) and crashes (anything but the `classified` faults)."""
     outcomes: Counter[str] = Counter()
     crashes: list[str] = []
     hangs = bad_values = calls = 0
     max_s = 0.0  # longest single call
     t0 = time.perf_counter()
-    try:
-        while dev.count < n_packets:
-            op, fn = DRIVER_OPS[int(rng.integers(0, len(DRIVER_OPS)))]
-            drv = drivers[int(rng.integers(0, 2))]
-            calls += 1
-            t_in = time.perf_counter()
-            try:
-                with watchdog():
-                    v = fn(drv)
-                max_s = max(max_s, time.perf_counter() - t_in)
-                outcomes["value"] += 1
-                bad_values += not _value_ok(op, v)
-            except CLASSIFIED as exc:
-                max_s = max(max_s, time.perf_counter() - t_in)
-                outcomes[type(exc).__name__] += 1
-            except Hang:
-                hangs += 1
-            except Exception:
-                crashes.append(f"{op}: {traceback.format_exc(limit=4)}")
-            drv.port.is_using = False
-    finally:
-        for d in drivers:
-            d.close()
-        unregister_bus(name)
+    while dev.count < limit:
+        op, fn, after = pick(rng)
+        calls += 1
+        t_in = time.perf_counter()
+        try:
+            with watchdog():
+                v = fn()
+            max_s = max(max_s, time.perf_counter() - t_in)
+            outcomes["value"] += 1
+            bad_values += not value_ok(op, v)
+        except classified as exc:
+            max_s = max(max_s, time.perf_counter() - t_in)
+            outcomes[type(exc).__name__] += 1
+        except Hang:
+            hangs += 1
+        except Exception:
+            crashes.append(f"{op}: {traceback.format_exc(limit=4)}")
+        after()
     return {
         "packets": dev.count,
         "calls": calls,
-        "kinds": dict(dev.kinds),
         "outcomes": dict(outcomes),
         "bad_values": bad_values,
         "max_s": max_s,
@@ -293,45 +305,21 @@ def fuzz_light(n_replies: int, seed: int = 0) -> dict:
         ("status", lambda d: d.status()),
         ("clear", lambda d: d.clear_fault()),
     )
-    outcomes: Counter[str] = Counter()
-    crashes: list[str] = []
-    hangs = bad_values = calls = 0
-    max_s = 0.0  # longest single call
-    t0 = time.perf_counter()
+
+    def light_value_ok(op: str, v) -> bool:  # noqa: ANN001
+        if op == "status":
+            return math.isfinite(v.intensity) and math.isfinite(v.measured)
+        return isinstance(v, str) if op == "identify" else True
+
+    def call(rng_: np.random.Generator):
+        op, fn = ops[int(rng_.integers(0, len(ops)))]
+        return op, lambda: fn(drv), lambda: None
+
     try:
-        while dev.count < n_replies:
-            op, fn = ops[int(rng.integers(0, len(ops)))]
-            calls += 1
-            t_in = time.perf_counter()
-            try:
-                with watchdog():
-                    v = fn(drv)
-                max_s = max(max_s, time.perf_counter() - t_in)
-                outcomes["value"] += 1
-                if op == "status":
-                    bad_values += not (math.isfinite(v.intensity) and math.isfinite(v.measured))
-                elif op == "identify":
-                    bad_values += not isinstance(v, str)
-            except LightError:
-                max_s = max(max_s, time.perf_counter() - t_in)
-                outcomes["LightError"] += 1
-            except Hang:
-                hangs += 1
-            except Exception:
-                crashes.append(f"{op}: {traceback.format_exc(limit=4)}")
+        return _fuzz_calls(dev, n_replies, rng, call, light_value_ok, LightError)
     finally:
         drv.close()
         unregister_light(name)
-    return {
-        "packets": dev.count,
-        "calls": calls,
-        "outcomes": dict(outcomes),
-        "bad_values": bad_values,
-        "max_s": max_s,
-        "crashes": crashes,
-        "hangs": hangs,
-        "wall_s": time.perf_counter() - t0,
-    }
 
 
 def _report(title: str, r: dict) -> int:

@@ -20,7 +20,7 @@ from fitting import models
 from fitting.directions import spherical_to_vector
 from fitting.likelihood import Likelihood
 from fitting.lsq import fit_least_squares
-from fitting.mcmc import run_mcmc
+from fitting.mcmc import McmcOptions, run_mcmc
 from fitting.priors import ParameterSpace
 from fitting.samples import SampleTable
 
@@ -105,13 +105,12 @@ def main(argv: list[str] | None = None) -> dict:
     res = run_mcmc(
         lik.log_prob,
         x0,
-        bounds=(lo, hi),
-        walkers=args.walkers,
-        max_steps=100_000,
+        (lo, hi),
+        McmcOptions(
+            walkers=args.walkers, max_steps=100_000, target_ess=args.target_ess, moves=args.moves
+        ),
         rng=args.seed,
         scale=scale,
-        target_ess=args.target_ess,
-        moves=args.moves,
     )
     per_step_vec = res.wall_time_s / res.iterations
 
@@ -120,13 +119,15 @@ def main(argv: list[str] | None = None) -> dict:
     run_mcmc(
         base,
         x0,
-        bounds=(lo, hi),
-        walkers=args.walkers,
-        max_steps=args.baseline_steps,
+        (lo, hi),
+        McmcOptions(
+            walkers=args.walkers,
+            max_steps=args.baseline_steps,
+            vectorize=False,
+            chunk=args.baseline_steps,
+        ),
         rng=args.seed,
         scale=scale,
-        vectorize=False,
-        chunk=args.baseline_steps,
     )
     per_step_base = (time.perf_counter() - t0) / args.baseline_steps
     out = {

@@ -10,6 +10,7 @@ import argparse
 import time
 
 import numpy as np
+from _common import random_positions
 
 from simulator.frames import encode_dng, encode_exr
 from simulator.planner import plan_effects
@@ -18,18 +19,6 @@ from simulator.scene import RoughPlasticMaterial, Scene, SensorSpec
 from simulator.sensor import Sensor
 
 __all__ = ["main", "bench"]
-
-
-def _poses(n: int, rng: np.random.Generator):
-    th_i = rng.uniform(0, np.radians(80), n)
-    th_o = rng.uniform(0, np.radians(80), n)
-    ph_i = rng.uniform(0, 2 * np.pi, n)
-    ph_o = rng.uniform(0, 2 * np.pi, n)
-
-    def sph(t, p, r):
-        return r * np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
-
-    return sph(th_i, ph_i, 0.5), sph(th_o, ph_o, 0.7)
 
 
 def bench(n: int = 200, variant: str | None = None, bayer: bool = False) -> dict:
@@ -41,7 +30,7 @@ def bench(n: int = 200, variant: str | None = None, bayer: bool = False) -> dict
     r = Renderer(scene, variant=variant)
     load_ms = (time.perf_counter() - t0) * 1e3
     sensor = Sensor(scene.sensor, scene.camera.f_number, rng=0, intrinsics=r.intrinsics)
-    lights, cams = _poses(n, np.random.default_rng(0))
+    lights, cams = random_positions(n, np.random.default_rng(0), 80)
     r.render(lights[0], cams[0])  # warm-up: kernel compilation / cache load
     t_render = t_sensor = t_encode = 0.0
     for k in range(n):

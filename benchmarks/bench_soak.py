@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import tomli_w
+from _common import reachable_poses
 
 __all__ = ["main", "soak"]
 
@@ -65,22 +66,13 @@ def _mem_kib(trim: bool = False) -> dict[str, int]:
 
 
 def _poses(rig, n: int) -> list[tuple[float, float, float, float]]:
-    from acquisition.kinematics import Kinematics, Pose, Unreachable
-
-    kin = Kinematics(rig)
-    poses = []
     grid = itertools.product(
         np.arange(5.0, 80.0, 2.5), np.arange(0.0, 85.0, 5.0), (0.0, 45.0, 90.0, 135.0, 180.0)
     )
-    for ti, to, dp in grid:
-        try:
-            kin.check(Pose.from_deg(ti, 0.0, to, dp))
-        except Unreachable:
-            continue
-        poses.append((float(ti), 0.0, float(to), float(dp)))
-        if len(poses) == n:
-            return poses
-    raise ValueError(f"only {len(poses)} reachable poses in the soak grid, {n} asked")
+    poses = reachable_poses(rig, grid, n)
+    if len(poses) < n:
+        raise ValueError(f"only {len(poses)} reachable poses in the soak grid, {n} asked")
+    return poses
 
 
 def soak(captures: int = 5000, rate: float = 0.005, seed: int = 0, root: str | None = None):

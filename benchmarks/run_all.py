@@ -15,6 +15,7 @@ import traceback
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))  # the benchmarks' shared helpers (benchmarks/_common.py)
 
 
 def main(argv: list[str]) -> int:

@@ -29,7 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fitting.atomic import atomic_write_bytes
+from plumbing.atomic import atomic_write_bytes
+from plumbing.errors import UserError
 
 __all__ = [
     "BoardSpec",
@@ -70,11 +71,11 @@ MIN_VIEWS = 3
 SUBPIX_HALF_WINDOW = 11
 
 
-class BoardSpecError(ValueError):
+class BoardSpecError(UserError, ValueError):
     """A `--board` string that cannot be parsed; the message is one line."""
 
 
-class CalibrationInputError(ValueError):
+class CalibrationInputError(UserError, ValueError):
     """Calibration images that cannot give a calibration; the message is one line."""
 
 

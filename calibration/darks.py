@@ -1,16 +1,11 @@
-"""Calibration frames on disk, and master darks per exposure.
+"""Calibration frames of a run, and master darks per exposure.
 
-Calibration frames (darks, flats) are kept raw, like the measurement frames (DESIGN §4: "raw data
-is kept"), under ``RUN/calibration/<kind>/`` and listed in ``RUN/calibration/frames.json``:
-
-    {"frames": [{"kind": "dark", "exposure_s": 0.002, "path": "calibration/dark/...dng",
-                 "sha256": "..."}, ...]}
-
-They are recorded by a calibration step (`record_frames`) that takes any ``capture(exposure_s)
--> Frame`` callable: on a lab rig the camera with the lens capped (darks) or facing a uniform
-source (flats); in the simulator ``SimCamera.capture_dark`` / ``capture_flat``. The reduce step
-builds the masters from these raw frames every time, so a better master-building method can be
-re-run on an old run.
+Calibration frames (darks, flats, reference-target captures) are kept raw, like the measurement
+frames (DESIGN §4: "raw data is kept"), under ``RUN/calibration/<kind>/`` and listed in the
+manifest's calibration table (acquisition.store; recorded by the plan's calibration phases,
+acquisition.calibration_capture, or a retake with `gonio capture KIND RUN`). `calibration_frames`
+gives the newest complete take of a kind. The reduce step builds the masters from these raw
+frames every time, so a better master-building method can be re-run on an old run.
 
 Master dark (EMVA 1288 §2; dark signal μ_d = black + (dark_rate·t + DSNU)/K⁻¹ per pixel): the mean
 of N dark frames at the *same* exposure, per pixel, in DN. Subtracting it instead of the nominal
@@ -22,101 +17,58 @@ of a light frame at that exposure; the master itself carries σ_d²/N.
 
 from __future__ import annotations
 
-import hashlib
-import json
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from acquisition.store import RunStore
 from calibration.decode import FrameError, decode_frame
-from fitting.atomic import atomic_write_bytes
+from plumbing.errors import UserError
 
 __all__ = [
     "CalibrationFrameError",
-    "CALIBRATION_DIR",
-    "INDEX_NAME",
-    "record_frames",
     "calibration_frames",
+    "calibration_take_description",
     "MasterDark",
     "DarkLibrary",
     "master_dark",
     "load_darks",
 ]
 
-CALIBRATION_DIR = "calibration"
-INDEX_NAME = "frames.json"
 
-
-class CalibrationFrameError(ValueError):
+class CalibrationFrameError(UserError, ValueError):
     """Calibration frames that cannot be used; one-line message."""
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    # temp file + fsync + rename: a crash never leaves a half-written frame or index.
-    atomic_write_bytes(path, data)
+def calibration_frames(run_dir: str | Path, kind: str) -> list[dict]:
+    """Entries of the newest complete take of `kind` ("dark", "flat", "reference"): dicts with
+    kind, take, exposure_s, path (inside the run), sha256 and the kind's own keys (reference:
+    pose, axes_rad, light_measured); [] when none was recorded. A take that was started but
+    never completed, with no complete one before it, is an error naming the fix."""
+    with RunStore.open(run_dir) as store:
+        take, note = store.usable_calibration_take(kind)
+        if not take:
+            if note:
+                raise CalibrationFrameError(note)
+            return []
+        return [r.entry() for r in store.calibration_captures(kind, take)]
 
 
-def calibration_frames(run_dir: str | Path, kind: str | None = None) -> list[dict]:
-    """Entries of ``RUN/calibration/frames.json`` (all, or of one kind); [] if none recorded."""
-    index = Path(run_dir) / CALIBRATION_DIR / INDEX_NAME
-    if not index.exists():
-        return []
-    try:
-        entries = json.loads(index.read_text())["frames"]
-    except (ValueError, KeyError, TypeError):
-        raise CalibrationFrameError(f"{index}: not a calibration frame index") from None
-    return [e for e in entries if kind is None or e.get("kind") == kind]
-
-
-def record_frames(
-    run_dir: str | Path,
-    kind: str,
-    capture: Callable[[float], object],
-    exposures_s: list[float] | tuple[float, ...],
-    n_frames: int,
-) -> list[dict]:
-    """Capture ``n_frames`` frames per exposure with ``capture(exposure_s) -> Frame`` (an
-    ``acquisition.protocols.Frame``: ``data`` bytes + ``suffix``) and file them as ``kind``
-    ("dark" or "flat"). Each frame is written atomically, then the index is rewritten atomically.
-    """
-    if kind not in ("dark", "flat"):
-        raise ValueError(f"kind must be 'dark' or 'flat' (got {kind!r})")
-    if n_frames < 2:
-        raise ValueError("need at least 2 frames (the temporal variance needs two)")
-    run_dir = Path(run_dir)
-    folder = run_dir / CALIBRATION_DIR / kind
-    folder.mkdir(parents=True, exist_ok=True)
-    entries = calibration_frames(run_dir)
-    new = []
-    for t in exposures_s:
-        for k in range(n_frames):
-            frame = capture(float(t))
-            name = f"{kind}-{float(t):.6g}s-{k:03d}{frame.suffix}"
-            _atomic_write(folder / name, frame.data)
-            new.append(
-                {
-                    "kind": kind,
-                    "exposure_s": float(t),
-                    "path": f"{CALIBRATION_DIR}/{kind}/{name}",
-                    "sha256": hashlib.sha256(frame.data).hexdigest(),
-                }
-            )
-    paths = {e["path"] for e in new}
-    entries = [e for e in entries if e["path"] not in paths] + new
-    _atomic_write(
-        run_dir / CALIBRATION_DIR / INDEX_NAME,
-        json.dumps({"frames": entries}, indent=1).encode(),
-    )
-    return new
+def calibration_take_description(run_dir: str | Path, kind: str) -> dict:
+    """What the newest complete take of `kind` recorded about itself ({} if none)."""
+    with RunStore.open(run_dir) as store:
+        take, _ = store.usable_calibration_take(kind)
+        info = store.calibration_take_info(kind, take) if take else None
+        return {} if info is None else dict(info["description"])
 
 
 def _decode_all(run_dir: Path, entries: list[dict]) -> list[np.ndarray]:
     out = []
     for e in entries:
         try:
-            out.append(np.asarray(decode_frame(run_dir / e["path"]).dn, dtype=np.float64))
+            frame = decode_frame(run_dir / e["path"], e.get("sha256"))
+            out.append(np.asarray(frame.dn, dtype=np.float64))
         except FrameError as exc:
             raise CalibrationFrameError(f"{e['kind']} frame unusable: {exc}") from None
     shapes = {a.shape for a in out}

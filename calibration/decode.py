@@ -33,26 +33,38 @@ from pathlib import Path
 
 import numpy as np
 
+from plumbing.errors import UserError
+from plumbing.hashing import sha256_file
+
 __all__ = [
     "DecodedFrame",
     "FrameError",
+    "FrameIntegrityError",
     "decode_frame",
     "linear",
     "demosaic_to_rgb",
     "RAW_SUFFIXES",
     "EXR_SUFFIXES",
+    "MONO_SUFFIXES",
 ]
 
 RAW_SUFFIXES = frozenset(
     {".dng", ".nef", ".nrw", ".cr2", ".cr3", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw"}
 )
 EXR_SUFFIXES = frozenset({".exr"})
+# Monochrome 8/16-bit TIFF (a GenICam camera's Mono8/Mono16 frames, acquisition.frame_files).
+MONO_SUFFIXES = frozenset({".tif", ".tiff"})
 _TIFF_RAW_SUFFIXES = frozenset({".dng", ".nef", ".nrw", ".arw", ".pef", ".srw"})
 METADATA_ATTRIBUTE = "gonio"
 
 
-class FrameError(ValueError):
+class FrameError(UserError, ValueError):
     """A frame that cannot be decoded; the message is one line and names the file."""
+
+
+class FrameIntegrityError(FrameError):
+    """A frame whose SHA-256 is not the one the manifest recorded at capture (changed, swapped
+    or replaced since): never used as if it were that capture."""
 
 
 @dataclass
@@ -145,18 +157,31 @@ def _pass_on(collected: list[str]) -> None:
         sys.stderr.write(text)
 
 
-def decode_frame(path) -> DecodedFrame:
-    """Decode a RAW (DNG, NEF, ...) or EXR file. Raises ``FrameError`` with a one-line message."""
+def decode_frame(path, sha256: str | None = None) -> DecodedFrame:
+    """Decode a RAW (DNG, NEF, ...) or EXR file. Raises ``FrameError`` with a one-line message.
+
+    ``sha256``: the digest the manifest recorded at capture; the file is checked against it
+    before it is decoded (``FrameIntegrityError``), so a swapped or edited frame is never taken
+    for its capture. Costs one read of the file (~50 ms for a 25 MB RAW)."""
     p = Path(path)
     suffix = p.suffix.lower()
     if not p.is_file():
         raise FrameError(f"{p}: no such file")
+    if sha256 is not None and sha256_file(p) != sha256:
+        changed = "SHA-256 differs from the manifest's (changed or swapped since capture)"
+        try:
+            decode_frame(p)
+        except FrameError as exc:  # say what is wrong with it, too (truncated, not a RAW...)
+            raise FrameIntegrityError(f"{exc}; its {changed}") from None
+        raise FrameIntegrityError(f"{p}: {changed}")
     if suffix in EXR_SUFFIXES:
         return _decode_exr(p)
     if suffix in RAW_SUFFIXES:
         return _decode_raw(p)
+    if suffix in MONO_SUFFIXES:
+        return _decode_mono_tiff(p)
     raise FrameError(
-        f"{p}: unknown frame suffix {p.suffix!r} (expected .exr or a RAW such as .dng/.nef)"
+        f"{p}: unknown frame suffix {p.suffix!r} (expected .exr, .tif or a RAW such as .dng/.nef)"
     )
 
 
@@ -322,6 +347,38 @@ def _decode_exr(p: Path) -> DecodedFrame:
         black_level=np.asarray(black, dtype=np.float32),
         white_level=white,
         exposure_s=float(md.get("exposure_s", float("nan"))),
+        metadata=md,
+        path=str(p),
+    )
+
+
+def _decode_mono_tiff(p: Path) -> DecodedFrame:
+    """A monochrome uint8/uint16 TIFF (acquisition.frame_files.encode_mono_tiff): DN as they are,
+    black/white level and exposure from the gonio JSON in ImageDescription (exact), else the
+    EXIF ExposureTime, else NaN; without metadata the black level is 0 and white the dtype's max.
+    """
+    import tifffile
+
+    _check_tiff_complete(p)
+    try:
+        with _tifffile_quiet(), tifffile.TiffFile(p) as tif:
+            page = tif.pages[0]
+            arr = page.asarray()
+    except Exception as exc:  # noqa: BLE001 — tifffile raises many kinds; one line for all
+        raise FrameError(f"{p}: cannot read TIFF ({type(exc).__name__}: {exc})") from None
+    if arr.ndim != 2 or arr.dtype not in (np.uint8, np.uint16):
+        raise FrameError(
+            f"{p}: not a monochrome 8/16-bit frame (shape {arr.shape}, dtype {arr.dtype})"
+        )
+    md, tiff_exposure = _tiff_metadata(p)
+    exposure = md.get("exposure_s", tiff_exposure)
+    return DecodedFrame(
+        dn=arr.astype(np.float32),
+        channels="Y",
+        cfa_pattern=None,
+        black_level=np.asarray(np.float32(md.get("black_level", 0.0))),
+        white_level=float(md.get("white_level", np.iinfo(arr.dtype).max)),
+        exposure_s=float(exposure),
         metadata=md,
         path=str(p),
     )

@@ -78,13 +78,14 @@ def master_flat(
     cfa_pattern: str | None,
     exposure_s: float,
     darks: DarkLibrary | None,
-    black_level_dn: float,
-    white_level_dn: float,
-    gain_e_per_dn: float,
-    read_noise_e: float,
+    radiometry,
     intrinsics,
 ) -> FlatField:
-    """Build the flat from raw DN frames (all at ``exposure_s``)."""
+    """Build the flat from raw DN frames (all at ``exposure_s``); `radiometry` (a
+    calibration.radiometry.CameraRadiometry) gives the black and clip levels, the gain and
+    the read noise."""
+    black_level_dn, white_level_dn = radiometry.black_level_dn, radiometry.white_level_dn
+    gain_e_per_dn, read_noise_e = radiometry.gain_e_per_dn, radiometry.read_noise_e
     stack = np.stack([np.asarray(f, dtype=np.float64) for f in frames])
     if np.any(stack >= white_level_dn - 0.5):
         raise CalibrationFrameError(
@@ -132,16 +133,13 @@ def load_flat(
     if len(exposures) != 1:
         raise CalibrationFrameError(f"flat frames at several exposures {sorted(exposures)}")
     frames = _decode_all(run_dir, entries)  # raises a one-line error on a bad frame
-    first = decode_frame(run_dir / entries[0]["path"])
+    first = decode_frame(run_dir / entries[0]["path"])  # for its layout; verified just above
     return master_flat(
         frames,
         channels=first.channels,
         cfa_pattern=first.cfa_pattern,
         exposure_s=exposures.pop(),
         darks=darks,
-        black_level_dn=radiometry.black_level_dn,
-        white_level_dn=radiometry.white_level_dn,
-        gain_e_per_dn=radiometry.gain_e_per_dn,
-        read_noise_e=radiometry.read_noise_e,
+        radiometry=radiometry,
         intrinsics=intrinsics,
     )

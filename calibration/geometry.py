@@ -1,9 +1,16 @@
 """Per-pixel geometry: where each pixel looks on the sample, and its own ω_i, ω_o.
 
 The light and camera are at finite distance, so the directions differ across the image; using
-one (θ, φ) per image would blur the BRDF. Each pixel ray (pinhole model, OpenCV convention:
-pixel (u, v) centre at integer coordinates, ray ∝ ((u − c_x)/f_x, (v − c_y)/f_y, 1)) is cut
-with the sample plane z = 0.
+one (θ, φ) per image would blur the BRDF. Each pixel ray (OpenCV camera model: pixel (u, v)
+centre at integer coordinates; the pinhole ray ∝ (x, y, 1) with (x, y) the *undistorted*
+normalised coordinates of (u, v) — ((u − c_x)/f_x, (v − c_y)/f_y) when the Brown–Conrady
+coefficients are zero, else cv2.undistortPoints) is cut with the sample plane z = 0.
+
+`RigGeometry` puts the light and camera in the *sample's* frame from the measured axis angles,
+the rig's kinematics and its geometric calibration (`gonio calibrate-rig`: arm zero offsets δ,
+true angle = measured + δ; the sample plane's tilt R_τ = R_y(τ_y) R_x(τ_x), a point of the
+sample frame sits at R_τ·p in the rig frame — calibration.arm_offsets). The camera still looks
+at the rig's centre; its orientation in the sample frame is R_τᵀ·R_look-at.
 """
 
 from __future__ import annotations
@@ -12,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from acquisition.kinematics import look_at_rotation
+from acquisition.kinematics import Kinematics, look_at_rotation
 
-__all__ = ["Intrinsics", "PixelGeometry", "pixel_geometry", "project_points"]
+__all__ = ["Intrinsics", "RigGeometry", "PixelGeometry", "pixel_geometry", "project_points"]
 
 
 @dataclass(frozen=True)
@@ -25,16 +32,68 @@ class Intrinsics:
     fy: float
     cx: float
     cy: float
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     @classmethod
     def from_description(cls, d: dict) -> Intrinsics:
-        """From a camera description (run.toml [camera]): explicit fx/fy/cx/cy, or a
-        horizontal field of view with the principal point at the image centre."""
+        """From a camera description (run.toml [camera], acquisition.description): explicit
+        fx/fy/cx/cy (and OpenCV dist k1, k2, p1, p2, k3), or — runs written before schema 2 —
+        a horizontal field of view with the principal point at the image centre."""
         w, h = (int(x) for x in d["resolution"])
         if "fx" in d:
-            return cls(w, h, float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]))
+            dist = tuple((list(map(float, d.get("dist") or [])) + [0.0] * 5)[:5])
+            return cls(w, h, float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), dist)
         fx = (w / 2.0) / np.tan(np.radians(float(d["fov_deg"])) / 2.0)
         return cls(w, h, fx, fx, (w - 1) / 2.0, (h - 1) / 2.0)
+
+    @property
+    def distorted(self) -> bool:
+        return any(self.dist)
+
+    def normalised(self, uu: np.ndarray, vv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Undistorted normalised coordinates (x, y) of pixel positions (u, v)."""
+        if not self.distorted:
+            return (uu - self.cx) / self.fx, (vv - self.cy) / self.fy
+        import cv2
+
+        pts = np.stack([uu.ravel(), vv.ravel()], axis=-1).astype(np.float64).reshape(-1, 1, 2)
+        k = np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+        # Iterative inversion of Brown–Conrady (20 iterations; checked against projectPoints).
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-9)
+        und = cv2.undistortPoints(pts, k, np.asarray(self.dist), None, None, None, crit)
+        und = und.reshape(-1, 2)
+        return und[:, 0].reshape(uu.shape), und[:, 1].reshape(uu.shape)
+
+
+@dataclass(frozen=True)
+class RigGeometry:
+    """Light and camera in the sample's frame from measured axis angles (see module doc)."""
+
+    kinematics: Kinematics
+    offsets_rad: dict[str, float]
+    tilt: np.ndarray  # R_τ (3×3)
+
+    @classmethod
+    def of_run(cls, kinematics: Kinematics, arm_offsets: dict | None) -> RigGeometry:
+        """From the run's frozen arm-offsets record (run.toml [arm_offsets]) or none."""
+        if not arm_offsets:
+            return cls(kinematics, {}, np.eye(3))
+        from calibration.arm_offsets import tilt_rotation
+
+        offs = {k: float(np.radians(v)) for k, v in arm_offsets["offsets_deg"].items()}
+        t = arm_offsets["tilt_deg"]
+        return cls(kinematics, offs, tilt_rotation(np.radians(t["x"]), np.radians(t["y"])))
+
+    def true_axes(self, measured: dict[str, float]) -> dict[str, float]:
+        return {k: float(v) + self.offsets_rad.get(k, 0.0) for k, v in measured.items()}
+
+    def positions(self, measured: dict[str, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(camera position, light position, camera→sample rotation), sample frame."""
+        axes = self.true_axes(measured)
+        cam = self.kinematics.camera_position_m(axes)
+        light = self.kinematics.light_position_m(axes)
+        rot = self.tilt.T @ look_at_rotation(cam)
+        return self.tilt.T @ cam, self.tilt.T @ light, rot
 
 
 @dataclass
@@ -57,21 +116,22 @@ def pixel_geometry(
     step: int = 1,
     offset: float = 0.0,
     margin_m: float = 0.0,
+    rotation: np.ndarray | None = None,
 ) -> PixelGeometry:
     """Geometry for pixel centres u = offset + step·k (k = 0..W/step−1), same for v.
 
     With a 2×2 Bayer superpixel, step = 2 and offset = 0.5 put the ray through the centre of
-    the four photosites.
+    the four photosites. `rotation`: camera → sample frame (columns: camera axes); default the
+    camera looking at the origin (`look_at_rotation`), see `RigGeometry.positions`.
     """
     cam = np.asarray(camera_pos_m, dtype=np.float64)
     light = np.asarray(light_pos_m, dtype=np.float64)
     us = offset + step * np.arange(intr.width // step)
     vs = offset + step * np.arange(intr.height // step)
     uu, vv = np.meshgrid(us, vs)
-    d_cam = np.stack(
-        [(uu - intr.cx) / intr.fx, (vv - intr.cy) / intr.fy, np.ones_like(uu)], axis=-1
-    )
-    rot = look_at_rotation(cam)
+    x, y = intr.normalised(uu, vv)
+    d_cam = np.stack([x, y, np.ones_like(uu)], axis=-1)
+    rot = look_at_rotation(cam) if rotation is None else np.asarray(rotation)
     d = d_cam @ rot.T
     dz = d[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -89,13 +149,25 @@ def pixel_geometry(
     return PixelGeometry(p, wi, wo, r, on)
 
 
-def project_points(intr: Intrinsics, camera_pos_m: np.ndarray, points_m: np.ndarray) -> np.ndarray:
+def project_points(
+    intr: Intrinsics,
+    camera_pos_m: np.ndarray,
+    points_m: np.ndarray,
+    rotation: np.ndarray | None = None,
+) -> np.ndarray:
     """Pixel coordinates (N, 2) = (u, v) of world points (N, 3) seen by the camera at
-    ``camera_pos_m`` looking at the origin (pinhole, OpenCV convention as in `pixel_geometry`):
-    x_cam = Rᵀ(X − C), u = f_x x/z + c_x, v = f_y y/z + c_y."""
+    ``camera_pos_m`` (OpenCV convention as in `pixel_geometry`): x_cam = Rᵀ(X − C), then
+    u = f_x x'/z + c_x, v = f_y y'/z + c_y with (x', y') distorted by Brown–Conrady when the
+    intrinsics have distortion (cv2.projectPoints)."""
     cam = np.asarray(camera_pos_m, dtype=np.float64)
-    rot = look_at_rotation(cam)
+    rot = look_at_rotation(cam) if rotation is None else np.asarray(rotation)
     pc = (np.atleast_2d(np.asarray(points_m, dtype=np.float64)) - cam) @ rot
+    if intr.distorted:
+        import cv2
+
+        k = np.array([[intr.fx, 0, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1.0]])
+        uv, _ = cv2.projectPoints(pc, np.zeros(3), np.zeros(3), k, np.asarray(intr.dist))
+        return uv.reshape(-1, 2)
     return np.stack(
         [intr.fx * pc[:, 0] / pc[:, 2] + intr.cx, intr.fy * pc[:, 1] / pc[:, 2] + intr.cy], axis=-1
     )

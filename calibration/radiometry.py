@@ -27,9 +27,13 @@ LIGHT_SPEED_M_S = 299792458.0
 
 @dataclass(frozen=True)
 class CameraRadiometry:
+    """The camera's stated radiometric description (run.toml [camera]). Without a stated
+    quantum efficiency the conversion is nominal (QE = 1): fine for the reference-target method,
+    where every common factor cancels; the certified method needs the stated value."""
+
     f_number: float
     pixel_pitch_m: float
-    quantum_efficiency: float
+    quantum_efficiency: float | None
     wavelength_m: float
     gain_e_per_dn: float
     black_level_dn: float
@@ -42,7 +46,9 @@ class CameraRadiometry:
             return cls(
                 f_number=float(d["f_number"]),
                 pixel_pitch_m=float(d["pixel_pitch_m"]),
-                quantum_efficiency=float(d["quantum_efficiency"]),
+                quantum_efficiency=(
+                    float(d["quantum_efficiency"]) if "quantum_efficiency" in d else None
+                ),
                 wavelength_m=float(d["wavelength_m"]),
                 gain_e_per_dn=float(d["gain_e_per_dn"]),
                 black_level_dn=float(d["black_level_dn"]),
@@ -56,12 +62,8 @@ class CameraRadiometry:
     def radiance_per_electron_rate(self) -> float:
         """W m⁻² sr⁻¹ per (electron/s): the camera irradiance equation inverted."""
         photon_j = PLANCK_J_S * LIGHT_SPEED_M_S / self.wavelength_m
-        return (
-            photon_j
-            * 4.0
-            * self.f_number**2
-            / (math.pi * self.quantum_efficiency * self.pixel_pitch_m**2)
-        )
+        qe = 1.0 if self.quantum_efficiency is None else self.quantum_efficiency
+        return photon_j * 4.0 * self.f_number**2 / (math.pi * qe * self.pixel_pitch_m**2)
 
     def electrons(self, dn: np.ndarray) -> np.ndarray:
         return (np.asarray(dn, dtype=np.float64) - self.black_level_dn) * self.gain_e_per_dn

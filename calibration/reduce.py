@@ -9,17 +9,27 @@ the surface irradiance at each pixel's own surface point, and bin pixels into sq
 (σ of the mean from the noise model, including the dark and flat uncertainties).
 
 Radiometry (``ReduceOptions.radiometry``): "certified" divides by the light's certified intensity
-(rig config) and trusts the camera irradiance equation; "reference" replaces both by the effective
+(rig config) and trusts the camera irradiance equation (it needs the camera's stated quantum
+efficiency); "reference" replaces both by the effective
 intensity measured on a reference target (calibration.reference), whose own σ is added in
 quadrature to every sample's σ (it is a correlated systematic; also reported in the metadata);
 "auto" (default) uses the reference captures when the run has them, else the certified intensity.
+Per texel (``ReduceOptions.texel_mm``): every sample also gets the optional int32 column `texel`,
+the index of the texel of the sample plane its (region's mean) surface point falls in
+(calibration.texels: grid from the sample's corner, index iy·n + ix, the grid in the metadata),
+so each texel holds its own (ω_i, ω_o, f, σ) across poses; use ``bin_px = 1`` so a region never
+straddles texels. Such a file is written to ``samples-texels.parquet`` by default and never
+replaces an existing samples file made with other options (calibration.texels.check_replace).
 Without either the result is relative and flagged so (``gonio.absolute`` = "false").
 
 Segmentation (``ReduceOptions.segment``): per pose the sample is segmented in the image
 (calibration.segmentation) around its geometric footprint; footprint pixels the image puts on the
 holder or background (a mis-estimated pose, an occluding rim) are kept but flagged MASKED.
 
-Calibration frames live raw in `RUN/calibration/` (`calibration.darks`, `calibration.flatfield`).
+Everything comes from the run: run.toml's camera, sample, rig and geometric-calibration records
+(what the rig file described, acquisition.description) and the calibration frames the run
+recorded (`RUN/calibration/`, calibration.darks / flatfield / reference); never from a scene.
+The per-pose work (merge, flat, colour planes, geometry, segmentation) is calibration.planes.
 Bad input: a frame listed in the manifest but missing → CalibrationError naming the first; a
 frame that exists but cannot be decoded (truncated RAW, EXR without colour channels) → that
 capture is skipped with a printed warning and counted in the Parquet metadata
@@ -39,12 +49,21 @@ import numpy as np
 
 from acquisition.config import RigConfig
 from acquisition.kinematics import Kinematics
+from acquisition.run_document import RunDocument
 from acquisition.store import RunStore
 from calibration.darks import CalibrationFrameError, load_darks
-from calibration.decode import FrameError, decode_frame
+from calibration.decode import FrameError, FrameIntegrityError, decode_frame
 from calibration.flatfield import load_flat
-from calibration.geometry import Intrinsics, pixel_geometry, project_points
-from calibration.hdr import merge_brackets_local
+from calibration.geometry import Intrinsics, RigGeometry
+from calibration.planes import (
+    Plane,
+    PlaneError,
+    RunCalibration,
+    block_all,
+    block_any,
+    block_mean,
+    pose_planes,
+)
 from calibration.radiometry import CameraRadiometry, surface_irradiance
 from calibration.reference import (
     ReferenceScale,
@@ -53,16 +72,18 @@ from calibration.reference import (
     pixel_scale,
     reference_entries,
 )
-from calibration.segmentation import segment_sample
+from calibration.texels import TexelGrid, check_replace
 from fitting.directions import vector_to_spherical
 from fitting.samples import Flags, SampleTable, write_samples
+from plumbing.errors import UserError
+from plumbing.progress import Progress
 
 __all__ = ["ReduceOptions", "CalibrationError", "reduce_run"]
 
-CALIBRATION_VERSION = "1"
+CALIBRATION_VERSION = "3"  # 3: σ is statistical only; shared errors in gonio.budget
 
 
-class CalibrationError(RuntimeError):
+class CalibrationError(UserError, RuntimeError):
     """A run cannot be reduced; one-line message."""
 
 
@@ -86,61 +107,13 @@ class ReduceOptions:
     # Segment the sample in each image and flag footprint pixels off it as MASKED.
     segment: bool = True
     segment_band_px: float = 4.0  # largest footprint error (image pixels) the image can correct
-
-
-def _channels_of(flux, var, sat, channels: str, cfa_pattern: str | None):
-    """Per-channel planes of merged flux, variance and all-saturated masks, plus the pixel step
-    and per-channel offsets for geometry (Bayer → 2×2 superpixels) and photosites per channel
-    value. In an RGGB tile the R site sits at (0, 0), B at (1, 1) and the two greens' centroid
-    at (0.5, 0.5): each channel's rays go through its own photosites (a 0.5 px shift is 0.06°
-    here, which would bias a steep specular lobe by ~0.5%)."""
-    if channels == "CFA":
-        pattern = str(cfa_pattern).upper()
-        if pattern != "RGGB":
-            raise CalibrationError(f"CFA pattern {pattern} not supported yet (RGGB only)")
-
-        def split(a, combine):
-            r, g1, g2, b = a[0::2, 0::2], a[0::2, 1::2], a[1::2, 0::2], a[1::2, 1::2]
-            return [r, combine(g1, g2), b]
-
-        # Two green photosites are summed (not averaged) so the electron count stays Poisson.
-        return (
-            ["R", "G", "B"],
-            split(flux, np.add),
-            split(var, np.add),
-            split(sat, np.logical_or),
-            2,
-            [0.0, 0.5, 1.0],
-            [1, 2, 1],
-        )
-    if flux.ndim == 2:
-        return ["Y"], [flux], [var], [sat], 1, [0.0], [1]
-    n = flux.shape[2]
-    return (
-        ["R", "G", "B"][:n],
-        [flux[..., c] for c in range(n)],
-        [var[..., c] for c in range(n)],
-        [sat[..., c] for c in range(n)],
-        1,
-        [0.0] * n,
-        [1] * n,
-    )
-
-
-def _block_mean(a: np.ndarray, b: int) -> np.ndarray:
-    h, w = a.shape[0] // b * b, a.shape[1] // b * b
-    a = a[:h, :w]
-    return a.reshape(h // b, b, w // b, b, *a.shape[2:]).mean(axis=(1, 3))
-
-
-def _block_all(a: np.ndarray, b: int) -> np.ndarray:
-    h, w = a.shape[0] // b * b, a.shape[1] // b * b
-    return a[:h, :w].reshape(h // b, b, w // b, b).all(axis=(1, 3))
-
-
-def _block_any(a: np.ndarray, b: int) -> np.ndarray:
-    h, w = a.shape[0] // b * b, a.shape[1] // b * b
-    return a[:h, :w].reshape(h // b, b, w // b, b).any(axis=(1, 3))
+    # Per-texel samples: the side (mm) of square texels on the sample plane; each sample gets
+    # the `texel` index of its region's mean surface point (calibration.texels). None: off.
+    texel_mm: float | None = None
+    # A pose frame whose SHA-256 differs from the manifest's: skipped with a counted warning
+    # (False), or the calibration stops (True). Frames are always checked; darks, flats and
+    # reference frames always stop on a mismatch (every sample depends on them).
+    strict: bool = False
 
 
 def reduce_run(
@@ -152,37 +125,31 @@ def reduce_run(
 ) -> SampleTable:
     """Reduce `run_dir` and write `samples.parquet` into it (or to `out`)."""
     run_dir = Path(run_dir)
-    store = RunStore.open(run_dir)
-    try:
+    # Closed on the way out: a long-lived process (study, report) must not leak SQLite handles.
+    with RunStore.open(run_dir) as store:
         return _reduce_open_run(store, run_dir, options or ReduceOptions(), out, progress)
-    finally:
-        store.close()  # a long-lived process (study, report) must not leak SQLite handles
 
 
-def _reduce_open_run(
-    store: RunStore,
-    run_dir: Path,
-    options: ReduceOptions,
-    out: str | Path | None,
-    progress: bool,
-) -> SampleTable:
-    cfg = store.run_config()
+def _run_calibration(store: RunStore, run_dir: Path, options: ReduceOptions):
+    """(RunCalibration, rig config) from run.toml and the run's calibration frames."""
+    doc = RunDocument.of(store)
+    rig, camera, sample_size_m = doc.rig, doc.camera, float(doc.sample["size_m"])
     try:
-        rig = RigConfig.model_validate(cfg["rig"])
-        camera = cfg["camera"]
-        sample_size_m = float(cfg["sample"]["size_m"])
-    except KeyError as exc:
-        raise CalibrationError(f"{run_dir}/run.toml: missing section {exc.args[0]!r}") from None
-    radiometry = CameraRadiometry.from_description(camera)
-    intr = Intrinsics.from_description(camera)
-    kin = Kinematics(rig)
-    absolute = rig.light.intensity_W_sr is not None
-    intensity = (
-        np.asarray(rig.light.intensity_W_sr, dtype=np.float64) * rig.light.level
-        if absolute
-        else np.ones(3)
-    )
+        radiometry = CameraRadiometry.from_description(camera)
+        intr = Intrinsics.from_description(camera)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CalibrationError(f"{run_dir}/run.toml: [camera]: {exc}") from None
+    geometry = RigGeometry.of_run(Kinematics(rig), doc.arm_offsets)
+    try:
+        darks = load_darks(run_dir)
+        flat = load_flat(run_dir, darks, radiometry, intr)
+    except (CalibrationFrameError, FrameError) as exc:
+        raise CalibrationError(f"{run_dir}: {exc}") from None
+    cal = RunCalibration(run_dir, radiometry, intr, geometry, sample_size_m, darks, flat, options)
+    return cal, rig
 
+
+def _captures_by_pose(store: RunStore, run_dir: Path) -> dict[int, list]:
     by_pose: dict[int, list] = defaultdict(list)
     for rec in store.captures("done"):
         by_pose[rec.pose_index].append(rec)
@@ -199,13 +166,22 @@ def _reduce_open_run(
             f"{run_dir}: {len(missing)} frame(s) listed in the manifest are missing, "
             f"first {missing[0]}"
         )
+    return by_pose
 
-    try:
-        darks = load_darks(run_dir)
-        flat = load_flat(run_dir, darks, radiometry, intr)
-    except (CalibrationFrameError, FrameError) as exc:
-        raise CalibrationError(f"{run_dir}: {exc}") from None
 
+@dataclass
+class _Scale:
+    """The light × camera scale: per-channel intensity (W/sr) and its relative 1-σ."""
+
+    method: str
+    absolute: bool
+    intensity: np.ndarray
+    rel: np.ndarray
+    reference: ReferenceScale | None = None
+
+
+def _radiometric_scale(cal: RunCalibration, rig: RigConfig) -> _Scale:
+    run_dir, options = cal.run_dir, cal.options
     if options.radiometry not in ("auto", "certified", "reference"):
         raise CalibrationError(
             f"radiometry must be 'auto', 'certified' or 'reference' (got {options.radiometry!r})"
@@ -217,84 +193,90 @@ def _reduce_open_run(
     method = options.radiometry
     if method == "auto":
         method = "reference" if refs else "certified"
-    ref_scale: ReferenceScale | None = None
-    ref_rel = np.zeros(3)
-    if method == "reference":
-        if not refs:
-            raise CalibrationError(
-                f"{run_dir}: --radiometry reference but the run has no reference-target captures"
-            )
-        try:
-            ref_scale = _reference_scale(
-                run_dir,
-                refs,
-                radiometry,
-                intr,
-                kin,
-                sample_size_m,
-                options,
-                darks,
-                flat,
-                rig.light.level,
-            )
-        except (CalibrationFrameError, FrameError) as exc:
-            raise CalibrationError(f"{run_dir}: reference target: {exc}") from None
-        absolute = True
-        intensity = ref_scale.k
-        ref_rel = ref_scale.sigma / ref_scale.k
+    if method == "certified":
+        absolute = rig.light.intensity_W_sr is not None
+        if absolute and cal.radiometry.quantum_efficiency is None:
+            if options.radiometry == "certified":
+                raise CalibrationError(
+                    f"{run_dir}: --radiometry certified needs camera.quantum_efficiency in the "
+                    "rig file; record reference-target captures instead"
+                )
+            absolute = False  # the conversion is nominal: the values are relative
+        intensity = (
+            np.asarray(rig.light.intensity_W_sr, dtype=np.float64) * rig.light.level
+            if absolute
+            else np.ones(3)
+        )
+        return _Scale(method, absolute, intensity, np.zeros(3))
+    if not refs:
+        raise CalibrationError(
+            f"{run_dir}: --radiometry reference but the run has no reference-target captures"
+        )
+    try:
+        ref = _reference_scale(cal, refs, rig.light.level)
+    except (CalibrationFrameError, FrameError, PlaneError) as exc:
+        raise CalibrationError(f"{run_dir}: reference target: {exc}") from None
+    return _Scale(method, True, ref.k, ref.sigma / ref.k, ref)
 
+
+def _reduce_open_run(
+    store: RunStore,
+    run_dir: Path,
+    options: ReduceOptions,
+    out: str | Path | None,
+    progress: bool,
+) -> SampleTable:
+    cal, rig = _run_calibration(store, run_dir, options)
+    by_pose = _captures_by_pose(store, run_dir)
+    scale = _radiometric_scale(cal, rig)
     cols: dict[str, list[np.ndarray]] = defaultdict(list)
     skipped: list[dict] = []
+    monitors: list[float] = []  # per pose, for the report's drift plot
     iterator = sorted(by_pose.items())
-    bar = None
-    if progress:
-        from rich.progress import Progress
-
-        bar = Progress(transient=True)
-        bar.start()
-        task = bar.add_task("calibrating", total=len(iterator))
-    try:
+    with Progress("calibrating", len(iterator), enabled=progress, transient=True) as bar:
         for _pose_index, recs in iterator:
-            good, decoded = _decode_pose(recs, run_dir, skipped)
+            good, decoded = _decode_pose(recs, run_dir, skipped, options.strict)
             if good:
-                _reduce_pose(
-                    good,
-                    decoded,
-                    radiometry,
-                    intr,
-                    kin,
-                    intensity
-                    * (_monitor_factor(good, rig.light.level) if options.light_monitor else 1.0),
-                    sample_size_m,
-                    options,
-                    cols,
-                    darks,
-                    flat,
-                    ref_rel,
-                )
-            if bar is not None:
-                bar.advance(task)
-    finally:
-        if bar is not None:
-            bar.stop()
+                monitor = _monitor_factor(good, rig.light.level) if options.light_monitor else 1.0
+                monitors.append(monitor)
+                try:
+                    _reduce_pose(cal, good, decoded, scale.intensity * monitor, cols)
+                except (PlaneError, CalibrationFrameError) as exc:
+                    raise CalibrationError(f"{run_dir}: {exc}") from None
+            bar.advance()
     if not cols:
         # One line, no warnings before it: the error names the first frame that failed.
         if skipped and len(skipped) == sum(len(r) for r in by_pose.values()):
             raise CalibrationError(f"{run_dir}: no frame could be decoded ({skipped[0]['reason']})")
         raise CalibrationError(f"{run_dir}: no pixel of any frame falls on the sample")
-    if skipped:
-        # Warned only once the reduction has succeeded (the frames are counted in the Parquet
-        # metadata too); a handful are named, then the count.
-        for rec in skipped[:5]:
-            msg = f"warning: skipping capture {rec['capture_id']}: {rec['reason']}"
-            print(msg, file=sys.stderr)
-        print(
-            f"warning: {len(skipped)} capture(s) skipped (unreadable frames), "
-            f"first {skipped[0]['frame']}",
-            file=sys.stderr,
-        )
+    _warn_skipped(skipped)
+    budget = _budget(rig, scale, RunDocument.of(store).arm_offsets)
+    table = _table(cols, {**_metadata(cal, rig, scale, skipped, monitors), **budget})
+    default = "samples-texels.parquet" if options.texel_mm else "samples.parquet"
+    dest = Path(out) if out is not None else run_dir / default
+    if options.texel_mm:
+        check_replace(dest, table.metadata)
+    write_samples(dest, table)
+    return table
+
+
+def _warn_skipped(skipped: list[dict]) -> None:
+    """Warned only once the reduction has succeeded (the frames are counted in the Parquet
+    metadata too); a handful are named, then the count."""
+    if not skipped:
+        return
+    for rec in skipped[:5]:
+        print(f"warning: skipping capture {rec['capture_id']}: {rec['reason']}", file=sys.stderr)
+    print(
+        f"warning: {len(skipped)} capture(s) skipped (unreadable or changed frames), "
+        f"first {skipped[0]['frame']}",
+        file=sys.stderr,
+    )
+
+
+def _table(cols: dict[str, list[np.ndarray]], metadata: dict[str, str]) -> SampleTable:
     cat = {k: np.concatenate(v) for k, v in cols.items()}
-    table = SampleTable(
+    return SampleTable(
         theta_i=cat["theta_i"],
         phi_i=cat["phi_i"],
         theta_o=cat["theta_o"],
@@ -307,100 +289,194 @@ def _reduce_open_run(
             "capture_id": cat["capture_id"].astype(np.int64),
             "pixel_x": cat["pixel_x"].astype(np.int32),
             "pixel_y": cat["pixel_y"].astype(np.int32),
+            **({"texel": cat["texel"].astype(np.int32)} if "texel" in cat else {}),
         },
-        metadata={
-            "gonio.absolute": "true" if absolute else "false",
-            "gonio.calibration": json.dumps(
-                {
-                    "version": CALIBRATION_VERSION,
-                    "run": str(run_dir.name),
-                    "bin_px": options.bin_px,
-                    "radiometry": method,
-                    "method": (
-                        "reference target: k = L_ref/(f_ref cos(theta_i)/r^2), "
-                        "f = L/(k cos(theta_i)/r^2); sigma includes sigma_k in quadrature"
-                        if method == "reference"
-                        else "camera irradiance equation, point source E = I cos(theta_i)/r^2"
-                    ),
-                    "intensity_W_sr": np.asarray(intensity).tolist() if absolute else None,
-                    "reference": None if ref_scale is None else ref_scale.describe(),
-                    "segment": options.segment,
-                    "mode": options.mode,
-                    "dark": (
-                        None
-                        if darks is None
-                        else {f"{t:g}": m.n_frames for t, m in sorted(darks.masters.items())}
-                    ),
-                    "flat": None if flat is None else {"frames": flat.n_frames},
-                }
-            ),
-            "gonio.skipped_captures": json.dumps({"count": len(skipped), "captures": skipped}),
-        },
+        metadata=metadata,
     )
-    write_samples(Path(out) if out is not None else run_dir / "samples.parquet", table)
-    return table
 
 
-def _decode_pose(recs, run_dir, skipped):
-    """Decode a pose's brackets; a frame that cannot be decoded is skipped and recorded."""
+def _budget(rig: RigConfig, scale: _Scale, arm_offsets: dict | None) -> dict[str, str]:
+    """The samples' uncertainty budget as Parquet metadata (``gonio.budget``, see
+    _budget_components)."""
+    return {"gonio.budget": json.dumps(_budget_components(rig, scale, arm_offsets))}
+
+
+def _arm_components(rig: RigConfig, arm_offsets: dict | None) -> list[dict]:
+    """The arms' shared angle errors: the encoder zeros (measured by `gonio calibrate-rig`, to
+    its σ, or not measured at all) and the play and sag nobody measured. Named, with sizes where
+    known, and marked as not propagated: the fit does not carry angle errors yet."""
+    if arm_offsets and arm_offsets.get("sigma_deg"):
+        sig = {k: float(v) for k, v in arm_offsets["sigma_deg"].items() if not k.startswith("tilt")}
+        zero = {
+            "component": "arm angles: encoder zeros (gonio calibrate-rig)",
+            "type": "A",
+            "sigma_deg": sig,
+            "size": ", ".join(f"{k} {v:.3g}°" for k, v in sig.items()),
+        }
+    else:
+        zero = {
+            "component": "arm angles: encoder zeros",
+            "type": "B",
+            "sigma_deg": None,
+            "size": "not measured (no arm-offsets file): mounting errors of a few 0.1° are usual",
+        }
+    play = {
+        "component": "arm angles: gear backlash and arm sag",
+        "type": "B",
+        "sigma_deg": None,
+        "size": "not assessed (Dynamixel X-series backlash ~0.25° per joint)",
+    }
+    for comp in (zero, play):
+        comp.update(relative_sigma=None, shared_by="every sample of a pose (and of the run)",
+                    propagated=False)  # fmt: skip
+    return [zero, play]
+
+
+def _budget_components(rig: RigConfig, scale: _Scale, arm_offsets: dict | None) -> list[dict]:
+    """The uncertainty budget of the samples (GUM style): each component with its type (A:
+    from these data's scatter, B: from elsewhere, e.g. a certificate), its size and what it is
+    shared by. Only the statistical one is in the `sigma` column; a shared component is one
+    error for all the samples it names and must never be averaged as if independent."""
+    chans = ["R", "G", "B"]
+    budget = [
+        {
+            "component": "statistical (photon, read, dark, flat noise)",
+            "type": "A",
+            "relative_sigma": None,
+            "size": "per sample: the sigma column",
+            "shared_by": "none (independent per sample)",
+        }
+    ]
+    if scale.method == "reference" and scale.reference is not None:
+        ref = scale.reference.describe()
+        rel = dict(zip(ref["channels"], ref["rel_sigma"], strict=False))
+        budget.append(
+            {
+                "component": "scale (reference target: its certificate and the fit of k)",
+                "type": "A+B",
+                "relative_sigma": rel,
+                "size": ", ".join(f"{c} {100 * v:.3g} %" for c, v in rel.items()),
+                "shared_by": "every sample of a channel (the whole run)",
+            }
+        )
+    elif scale.absolute:
+        rel_cert = rig.light.intensity_rel_sigma
+        budget.append(
+            {
+                "component": "scale (lamp intensity certificate)",
+                "type": "B",
+                "relative_sigma": None if rel_cert is None else dict.fromkeys(chans, rel_cert),
+                "size": "not stated in the rig file (light.intensity_rel_sigma)"
+                if rel_cert is None
+                else f"{100 * rel_cert:.3g} %",
+                "shared_by": "every sample of a channel (the whole run)",
+            }
+        )
+    return budget + _arm_components(rig, arm_offsets)
+
+
+def _evidence(cal: RunCalibration, monitors: list[float]) -> dict:
+    """What the report shows as calibration evidence: each master dark's mean level and
+    temporal noise (DN), the flat field's spread, and the light monitor per pose."""
+    darks, flat = cal.darks, cal.flat
+    return {
+        "dark": (
+            {}
+            if darks is None
+            else {
+                f"{t:g}": {
+                    "frames": m.n_frames,
+                    "mean_dn": float(np.mean(m.dn)),
+                    "noise_dn": float(np.sqrt(m.temporal_var_dn2)),
+                }
+                for t, m in sorted(darks.masters.items())
+            }
+        ),
+        "flat": (
+            None
+            if flat is None
+            else {
+                "frames": flat.n_frames,
+                "gain_min": float(np.nanmin(flat.gain)),
+                "gain_max": float(np.nanmax(flat.gain)),
+                "gain_sd": float(np.nanstd(flat.gain)),
+            }
+        ),
+        "monitor_per_pose": [float(m) for m in monitors],
+    }
+
+
+def _metadata(
+    cal: RunCalibration, rig: RigConfig, scale: _Scale, skipped: list, monitors: list[float]
+) -> dict:
+    options, darks, flat = cal.options, cal.darks, cal.flat
+    notes = []
+    if rig.light.manual:
+        notes.append("the lamp was switched by hand (no monitor): its drift is uncorrected")
+    if not scale.absolute:
+        notes.append("values are relative (no certified intensity or quantum efficiency)")
+    calib = {
+        "version": CALIBRATION_VERSION,
+        "run": str(cal.run_dir.name),
+        "bin_px": options.bin_px,
+        "radiometry": scale.method,
+        "method": (
+            "reference target: k = L_ref/(f_ref cos(theta_i)/r^2), "
+            "f = L/(k cos(theta_i)/r^2); sigma statistical only, sigma_k in gonio.budget"
+            if scale.method == "reference"
+            else "camera irradiance equation, point source E = I cos(theta_i)/r^2"
+        ),
+        "intensity_W_sr": np.asarray(scale.intensity).tolist() if scale.absolute else None,
+        "reference": None if scale.reference is None else scale.reference.describe(),
+        "segment": options.segment,
+        "mode": options.mode,
+        # The DARK rule (f/σ below it), so a fit can censor at the same detection limit.
+        "min_snr": options.min_snr,
+        "dark": (
+            None
+            if darks is None
+            else {f"{t:g}": m.n_frames for t, m in sorted(darks.masters.items())}
+        ),
+        "flat": None if flat is None else {"frames": flat.n_frames},
+        "intrinsics": {
+            "fx": cal.intrinsics.fx,
+            "fy": cal.intrinsics.fy,
+            "cx": cal.intrinsics.cx,
+            "cy": cal.intrinsics.cy,
+            "dist": list(cal.intrinsics.dist),
+        },
+        "arm_offsets_rad": dict(cal.geometry.offsets_rad),
+        "light_drift_corrected": options.light_monitor and not rig.light.manual,
+        "notes": notes,
+        "evidence": _evidence(cal, monitors),
+    }
+    texels = {}
+    if options.texel_mm:
+        calib["texel_mm"] = options.texel_mm
+        texels = TexelGrid(options.texel_mm * 1e-3, cal.sample_size_m).metadata()
+    return {
+        **texels,
+        "gonio.absolute": "true" if scale.absolute else "false",
+        "gonio.calibration": json.dumps(calib),
+        "gonio.skipped_captures": json.dumps({"count": len(skipped), "captures": skipped}),
+    }
+
+
+def _decode_pose(recs, run_dir, skipped, strict: bool):
+    """Decode a pose's brackets, each checked against its manifest SHA-256; a frame that cannot
+    be decoded or does not match is skipped and recorded (`strict`: a mismatch stops)."""
     good, decoded = [], []
     for r in recs:
         try:
-            decoded.append(decode_frame(run_dir / r.frame_path))
+            decoded.append(decode_frame(run_dir / r.frame_path, r.sha256))
             good.append(r)
+        except FrameIntegrityError as exc:
+            if strict:
+                raise CalibrationError(f"{exc} (--strict)") from None
+            skipped.append({"capture_id": int(r.id), "frame": r.frame_path, "reason": str(exc)})
         except FrameError as exc:
             skipped.append({"capture_id": int(r.id), "frame": r.frame_path, "reason": str(exc)})
     return good, decoded
-
-
-def _merge_pose(decoded, exposures, radiometry, darks, flat, on_sample=None):
-    """Dark-subtract, convert to electrons, HDR-merge and flat-correct at full resolution.
-
-    Returns flux (e/s per photosite or pixel, flat-corrected), its variance and the
-    all-brackets-saturated mask, in the frames' own layout.
-    """
-    k = radiometry.gain_e_per_dn
-    electrons, sats, noise_sd, clip_e = [], [], [], []
-    white = radiometry.white_level_dn
-    shape = decoded[0].dn.shape
-    for d, t in zip(decoded, exposures, strict=True):
-        dn = np.asarray(d.dn, dtype=np.float64)
-        if dn.shape != shape:
-            raise CalibrationError(f"{d.path}: frame shape {dn.shape} differs from {shape}")
-        # The camera's clip level (full well), which can sit far below the ADC's white level.
-        sats.append(radiometry.saturated(dn))
-        if darks is not None:
-            try:
-                dark = darks.for_exposure(t)
-            except CalibrationFrameError as exc:
-                raise CalibrationError(str(exc)) from None
-            electrons.append((dn - dark.dn) * k)
-            clip_e.append((white - dark.dn) * k)  # the clip in dark-subtracted electrons
-            # Signal-independent variance: the frame's own (measured) dark noise plus that of
-            # the master subtracted from it.
-            noise_sd.append(k * math.sqrt(dark.temporal_var_dn2 + dark.master_var_dn2))
-        else:
-            electrons.append(radiometry.electrons(dn))
-            clip_e.append((white - radiometry.black_level_dn) * k)
-            noise_sd.append(math.sqrt(radiometry.read_noise_e**2 + k**2 / 12.0))
-    # Weights, variance and the choice of brackets from the neighbours' flux, never the pixel's
-    # own noisy value (calibration.hdr.merge_brackets_local: own-value weights and saturation
-    # tests bias the flux and any σ-weighted fit by O(1/N_electrons)). Off-sample neighbours
-    # (holder, background) do not enter the local estimate.
-    flux, var, all_sat = merge_brackets_local(
-        electrons,
-        exposures,
-        sats,
-        np.asarray(noise_sd),
-        clip_e,
-        valid=on_sample,
-        cfa=decoded[0].channels == "CFA",
-    )
-    if flat is not None:
-        if flat.gain.shape != flux.shape:
-            raise CalibrationError(f"flat field shape {flat.gain.shape} ≠ frame {flux.shape}")
-        flux, var = flat.apply(flux, var)
-    return flux, var, all_sat
 
 
 def _monitor_factor(recs, level: float) -> float:
@@ -417,101 +493,22 @@ def _monitor_factor(recs, level: float) -> float:
     return float(np.mean(readings)) / level
 
 
-@dataclass
-class _Plane:
-    """One colour channel of a pose at channel resolution, with its per-pixel geometry."""
-
-    name: str
-    flux: np.ndarray  # e/s per channel value (flat-corrected)
-    var: np.ndarray
-    all_sat: np.ndarray
-    geo: object  # PixelGeometry; on_sample includes the edge margin (and whole superpixels)
-    offset: float
-    step: int
-    sites: int
-
-
-def _pose_planes(
-    decoded, exposures, axes, radiometry, intr, kin, sample_size_m, options, darks, flat
-):
-    """Merge a pose's brackets and split it into colour planes with their geometry; also the
-    image segmentation of the sample (bool at channel resolution, None if disabled)."""
-    cam_pos, light_pos = kin.camera_position_m(axes), kin.light_position_m(axes)
-    # Where each full-resolution pixel (photosite) lands on the sample, edge margin included.
-    on_full = pixel_geometry(
-        intr, cam_pos, light_pos, sample_size_m, margin_m=options.margin_m
-    ).on_sample
-    flux_all, var_all, sat_all = _merge_pose(
-        decoded, exposures, radiometry, darks, flat, on_sample=on_full
-    )
-    names, fluxes, variances, sats, step, offsets, sites = _channels_of(
-        flux_all, var_all, sat_all, decoded[0].channels, decoded[0].cfa_pattern
-    )
-    geos: dict[float, object] = {}
-    sites_on = None
-    if step > 1:
-        # A superpixel is on the sample only if every photosite of it is: at grazing views one
-        # photosite spans more than the edge margin, so the centroid's test is not enough.
-        sites_on = _block_all(on_full, step)
-    planes = []
-    for c, name in enumerate(names):
-        offset = offsets[c]
-        if offset not in geos:
-            geos[offset] = pixel_geometry(
-                intr,
-                cam_pos,
-                light_pos,
-                sample_size_m,
-                step=step,
-                offset=offset,
-                margin_m=options.margin_m,
-            )
-        geo = geos[offset]
-        if sites_on is not None:
-            geo = type(geo)(
-                geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample & sites_on
-            )
-        planes.append(_Plane(name, fluxes[c], variances[c], sats[c], geo, offset, step, sites[c]))
-    seg = None
-    if options.segment:
-        # The image of all colours together (a superpixel per value for a mosaic) around the
-        # sample's projected corners, in that image's pixel coordinates.
-        half = sample_size_m / 2.0
-        corners_m = np.array(
-            [[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]]
-        )
-        corners = (project_points(intr, cam_pos, corners_m) - (step - 1) / 2.0) / step
-        image = np.sum(fluxes, axis=0)
-        noise = np.sqrt(np.sum(variances, axis=0))
-        # A pixel saturated in every bracket is bright whatever its merged value says.
-        sat_any = np.any(sats, axis=0)
-        finite = np.isfinite(image) & ~sat_any
-        image = np.where(sat_any, image[finite].max() if finite.any() else 0.0, image)
-        if np.all(np.isfinite(corners)):
-            seg = segment_sample(
-                image, corners, noise_sd=noise, band_px=options.segment_band_px
-            ).mask
-    return planes, seg
-
-
-def _reference_scale(
-    run_dir, refs, radiometry, intr, kin, sample_size_m, options, darks, flat, level
-) -> ReferenceScale:
+def _reference_scale(cal: RunCalibration, refs, level) -> ReferenceScale:
     """Effective intensity per channel from the reference-target captures (calibration.reference):
     per pose the mean over on-target pixels of L̃/(f_ref cos θ_i/r²), divided by the monitor's
-    relative reading at that pose, then combined over poses."""
-    target = load_reference_target(run_dir)
+    relative reading at that pose, then combined over poses; the certificate's own relative
+    σ is added in quadrature (it is common to every pose)."""
+    target = load_reference_target(cal.run_dir)
+    size_m = target.size_m or cal.sample_size_m
     lut = {"R": 0, "G": 1, "B": 2}
     per_pose: list[dict] = []
     names: list[str] | None = None
     for pose, entries in sorted(refs.items()):
         entries = sorted(entries, key=lambda e: float(e["exposure_s"]))
-        decoded = [decode_frame(Path(run_dir) / e["path"]) for e in entries]
+        decoded = [decode_frame(Path(cal.run_dir) / e["path"], e.get("sha256")) for e in entries]
         exposures = [float(e["exposure_s"]) for e in entries]
         axes = {k: float(v) for k, v in entries[0]["axes_rad"].items()}
-        planes, seg = _pose_planes(
-            decoded, exposures, axes, radiometry, intr, kin, sample_size_m, options, darks, flat
-        )
+        planes, seg = pose_planes(cal, decoded, exposures, axes, size_m)
         readings = [
             float(e["light_measured"])
             for e in entries
@@ -528,7 +525,7 @@ def _reference_scale(
             wi, wo = pl.geo.wi[valid], pl.geo.wo[valid]
             f_all = target.f_ref(wi, wo)
             f_ref = f_all.mean(axis=1) if pl.name == "Y" else f_all[:, lut[pl.name]]
-            scale = radiometry.radiance_per_electron_rate / pl.sites
+            scale = cal.radiometry.radiance_per_electron_rate / pl.sites
             e_geom = surface_irradiance(1.0, wi[:, 2], pl.geo.light_distance_m[valid])
             k, sk = pixel_scale(pl.flux[valid] * scale, pl.var[valid] * scale**2, e_geom, f_ref)
             ks.append(k / monitor)
@@ -538,112 +535,103 @@ def _reference_scale(
     k_all = np.array([p["k_W_sr"] for p in per_pose])
     s_all = np.array([p["sigma_W_sr"] for p in per_pose])
     res = [combine_scales(k_all[:, c], s_all[:, c]) for c in range(k_all.shape[1])]
+    k = np.array([r[0] for r in res])
+    sigma = np.hypot(np.array([r[1] for r in res]), k * target.rel_sigma)
     return ReferenceScale(
         channels=list(names or []),
-        k=np.array([r[0] for r in res]),
-        sigma=np.array([r[1] for r in res]),
+        k=k,
+        sigma=sigma,
         n_poses=len(per_pose),
         birge=np.array([r[2] for r in res]),
         per_pose=per_pose,
     )
 
 
-def _reduce_pose(
-    recs,
-    decoded,
-    radiometry,
-    intr,
-    kin,
-    intensity,
-    sample_size_m,
-    options,
-    cols,
-    darks,
-    flat,
-    ref_rel=None,
-) -> None:
+def _reduce_pose(cal: RunCalibration, recs, decoded, intensity, cols) -> None:
+    """Append the samples of one pose to `cols`."""
     exposures = [float(r.exposure_s) for r in recs]
-    planes, seg = _pose_planes(
-        decoded,
-        exposures,
-        recs[0].axes_measured,
-        radiometry,
-        intr,
-        kin,
-        sample_size_m,
-        options,
-        darks,
-        flat,
-    )
-    k_rad = radiometry.radiance_per_electron_rate
-    ref_rel = np.zeros(3) if ref_rel is None else np.asarray(ref_rel, dtype=np.float64)
+    planes, seg = pose_planes(cal, decoded, exposures, recs[0].axes_measured)
+    k_rad = cal.radiometry.radiance_per_electron_rate
     for c, pl in enumerate(planes):
-        name, geo = pl.name, pl.geo
-        b = options.bin_px
-        offset, step_c = pl.offset, pl.step
-        flux, var, all_sat = pl.flux, pl.var, pl.all_sat
-        off_image = np.zeros(flux.shape, bool) if seg is None else ~seg
-        if options.mode == "center" and b > 1:
-            # Keep the pixel nearest each region's centre; then treat it as a 1×1 region.
-            h, w = geo.on_sample.shape[0] // b, geo.on_sample.shape[1] // b
-            m = b // 2
-
-            def pick(a, m=m, h=h, w=w, b=b):
-                return a[m::b, m::b][:h, :w]
-
-            geo = type(geo)(
-                *(
-                    pick(a)
-                    for a in (geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
-                )
-            )
-            flux, var, all_sat, off_image = pick(flux), pick(var), pick(all_sat), pick(off_image)
-            offset = offset + m * step_c
-            step_c = step_c * b
-            b = 1
-        on = _block_all(geo.on_sample, b)
+        pl, off_image, b = _select(pl, seg, cal.options)
+        geo = pl.geo
+        on = block_all(geo.on_sample, b)
         if not on.any():
             continue
         e_surf_geom = surface_irradiance(1.0, geo.wi[..., 2], geo.light_distance_m)  # × I
-        wi = _block_mean(geo.wi, b)
-        wo = _block_mean(geo.wo, b)
+        wi = block_mean(geo.wi, b)
+        wo = block_mean(geo.wo, b)
         wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
         wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
         ti, pi = vector_to_spherical(wi[on])
         to, po = vector_to_spherical(wo[on])
         ys, xs = np.nonzero(on)
-        px = (xs * b + (b - 1) / 2.0) * step_c + offset
-        py = (ys * b + (b - 1) / 2.0) * step_c + offset
+        px = (xs * b + (b - 1) / 2.0) * pl.step + pl.offset
+        py = (ys * b + (b - 1) / 2.0) * pl.step + pl.offset
         scale = k_rad / pl.sites  # summed greens count twice the photosite area
-        if name != "Y":
+        if pl.name != "Y":
             i_c = float(intensity[min(c, len(intensity) - 1)])
-            rel_c = float(ref_rel[min(c, len(ref_rel) - 1)])
         else:
-            i_c, rel_c = float(np.mean(intensity)), float(np.mean(ref_rel))
+            i_c = float(np.mean(intensity))
         e_surf = e_surf_geom * i_c
         with np.errstate(divide="ignore", invalid="ignore"):
-            f_px = flux * scale / e_surf
-            var_f_px = var * (scale / e_surf) ** 2
-        f_reg = _block_mean(f_px, b)[on]
+            f_px = pl.flux * scale / e_surf
+            var_f_px = pl.var * (scale / e_surf) ** 2
+        f_reg = block_mean(f_px, b)[on]
         n_px = b * b
-        # The reference scale's σ is common to every sample of the channel (a correlated
-        # systematic); adding it in quadrature keeps each σ honest on its own.
-        sigma_reg = np.sqrt(_block_mean(var_f_px, b)[on] / n_px + (f_reg * rel_c) ** 2)
+        # Statistical σ only (photon, read and dark noise, flat-field noise). The scale's σ is
+        # one error shared by every sample of the channel: in quadrature here it would average
+        # away as 1/√N in kd and ks, so it goes to the budget (gonio.budget) instead and the
+        # fit carries it as a shared component (fitting.budget).
+        sigma_reg = np.sqrt(block_mean(var_f_px, b)[on] / n_px)
         flags = np.zeros(f_reg.shape, np.int32)
-        flags[_block_any(all_sat, b)[on]] |= Flags.SATURATED
-        flags[_block_any(off_image, b)[on]] |= Flags.MASKED
+        flags[block_any(pl.all_sat, b)[on]] |= Flags.SATURATED
+        flags[block_any(off_image, b)[on]] |= Flags.MASKED
         with np.errstate(divide="ignore", invalid="ignore"):
             snr = f_reg / sigma_reg
-        flags[~(snr >= options.min_snr)] |= Flags.DARK
+        flags[~(snr >= cal.options.min_snr)] |= Flags.DARK
         n = f_reg.shape[0]
         cols["theta_i"].append(ti)
         cols["phi_i"].append(pi)
         cols["theta_o"].append(to)
         cols["phi_o"].append(po)
-        cols["channel"].append(np.full(n, name, dtype=object))
+        cols["channel"].append(np.full(n, pl.name, dtype=object))
         cols["f"].append(f_reg)
         cols["sigma"].append(sigma_reg)
         cols["flags"].append(flags)
         cols["capture_id"].append(np.full(n, recs[0].id, dtype=np.int64))
         cols["pixel_x"].append(np.round(px).astype(np.int32))
         cols["pixel_y"].append(np.round(py).astype(np.int32))
+        if cal.options.texel_mm:
+            grid = TexelGrid(cal.options.texel_mm * 1e-3, cal.sample_size_m)
+            cols["texel"].append(grid.index(block_mean(geo.point_m, b)[on]))
+
+
+def _select(pl, seg, options):
+    """(plane, off-image mask, bin) for the reduction mode: "center" keeps the pixel nearest
+    each region's centre and treats it as a 1×1 region; "mean" keeps the plane as is."""
+    off_image = np.zeros(pl.flux.shape, bool) if seg is None else ~seg
+    b = options.bin_px
+    if options.mode != "center" or b <= 1:
+        return pl, off_image, b
+    geo = pl.geo
+    h, w = geo.on_sample.shape[0] // b, geo.on_sample.shape[1] // b
+    m = b // 2
+
+    def pick(a):
+        return a[m::b, m::b][:h, :w]
+
+    geo = type(geo)(
+        *(pick(a) for a in (geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample))
+    )
+    picked = Plane(
+        pl.name,
+        pick(pl.flux),
+        pick(pl.var),
+        pick(pl.all_sat),
+        geo,
+        pl.offset + m * pl.step,
+        pl.step * b,
+        pl.sites,
+    )
+    return picked, pick(off_image), 1

@@ -18,16 +18,18 @@ absolute scale) cancels.
 
 Uncertainty: each reference pose gives k per channel with the standard error of its pixel mean
 (the larger of the noise-model and the empirical value); poses combine by inverse-variance
-weighting, inflated by the Birge ratio √(χ²/dof) when they disagree beyond their errors. The
-relative σ_k/k is a *correlated* systematic of every sample of that channel; the reduction adds
-it in quadrature to each sample's σ and also reports it in the Parquet metadata.
+weighting, inflated by the Birge ratio √(χ²/dof) when they disagree beyond their errors; the
+certificate's own relative uncertainty (rig file `[reference] albedo_sigma` / `table_sigma`) is
+added in quadrature. The relative σ_k/k is a *correlated* systematic of every sample of that
+channel; the reduction adds it in quadrature to each sample's σ and also reports it in the
+Parquet metadata.
 
 Files (DESIGN §4, next to the darks and flats of calibration.darks): raw frames under
-``RUN/calibration/reference/``, listed in ``RUN/calibration/frames.json`` with kind "reference"
-and the pose (``axes_rad``, arm angles as for a measurement capture), the bracket's exposure and
-the light monitor's reading; the target's description in ``RUN/calibration/reference/target.json``
-(``{"type": "lambertian", "reflectance": [ρ_R, ρ_G, ρ_B]}`` or ``{"type": "table", "file":
-"f_ref.csv"}``, the table copied into the run so the run stays self-contained).
+``RUN/calibration/reference/``, listed in the manifest's calibration table with kind
+"reference" and the pose (``axes_rad``, measured arm angles as for a measurement capture), the
+bracket's exposure and the light monitor's reading; the target's description (what the rig
+file's ``[reference]`` said; a table file is copied into the run, so the run stays
+self-contained) with the take (acquisition.calibration_capture).
 
 f_ref tables (CSV or TOML): one row per calibrated geometry, columns ``theta_i_deg``,
 ``theta_o_deg``, optionally ``delta_phi_deg`` (|φ_o − φ_i| folded to [0, 180]; without it the
@@ -40,29 +42,26 @@ the table is an error, never an extrapolation. TOML: ``[[point]]`` tables with t
 from __future__ import annotations
 
 import csv
-import hashlib
-import json
 import math
 import tomllib
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from calibration.darks import CALIBRATION_DIR, INDEX_NAME, CalibrationFrameError, calibration_frames
-from fitting.atomic import atomic_write_bytes
+from calibration.darks import (
+    CalibrationFrameError,
+    calibration_frames,
+    calibration_take_description,
+)
+from plumbing.atomic import atomic_write_bytes
 
 __all__ = [
     "REFERENCE_KIND",
     "FRefTable",
     "ReferenceTarget",
-    "ReferenceShot",
     "ReferenceScale",
     "load_f_ref_table",
-    "record_reference_frames",
-    "record_reference_poses",
-    "REFERENCE_POSES_DEG",
     "load_reference_target",
     "reference_entries",
     "pixel_scale",
@@ -70,7 +69,6 @@ __all__ = [
 ]
 
 REFERENCE_KIND = "reference"
-TARGET_NAME = "target.json"
 
 
 def _fold_delta_phi(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
@@ -195,6 +193,8 @@ class ReferenceTarget:
 
     reflectance: tuple[float, float, float] | None = (0.99, 0.99, 0.99)
     table: FRefTable | None = None
+    rel_sigma: float = 0.0  # the certificate's relative 1-σ (a systematic of the scale k)
+    size_m: float | None = None  # side of the square target (None: the sample's)
 
     def f_ref(self, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
         """f_ref (N, 3) in sr⁻¹ at unit directions wi, wo (N, 3)."""
@@ -202,96 +202,6 @@ class ReferenceTarget:
             return self.table(wi, wo)
         n = np.atleast_2d(wi).shape[0]
         return np.broadcast_to(np.asarray(self.reflectance) / np.pi, (n, 3)).copy()
-
-    def describe(self) -> dict:
-        if self.table is not None:
-            return {"type": "table", "file": "f_ref.csv"}
-        return {"type": "lambertian", "reflectance": [float(r) for r in self.reflectance]}
-
-
-@dataclass(frozen=True)
-class ReferenceShot:
-    """One raw reference capture: the frame bytes, its exposure, the pose (arm angles in rad,
-    as in the manifest's axes_measured) and the light monitor's reading (None if none)."""
-
-    pose: int
-    axes_rad: dict[str, float]
-    exposure_s: float
-    data: bytes
-    suffix: str
-    light_measured: float | None = None
-
-
-def record_reference_frames(
-    run_dir: str | Path, target: ReferenceTarget, shots: Iterable[ReferenceShot]
-) -> list[dict]:
-    """File reference captures raw under ``RUN/calibration/reference/`` (each atomically), the
-    target description beside them, and list them in the calibration index (rewritten
-    atomically, replacing any earlier reference entries: one target per run)."""
-    run_dir = Path(run_dir)
-    folder = run_dir / CALIBRATION_DIR / REFERENCE_KIND
-    folder.mkdir(parents=True, exist_ok=True)
-    if target.table is not None:
-        target.table.write_csv(folder / "f_ref.csv")
-    atomic_write_bytes(folder / TARGET_NAME, (json.dumps(target.describe()) + "\n").encode())
-    new = []
-    for s in shots:
-        name = f"ref-p{s.pose:03d}-{float(s.exposure_s):.6g}s{s.suffix}"
-        atomic_write_bytes(folder / name, s.data)
-        new.append(
-            {
-                "kind": REFERENCE_KIND,
-                "exposure_s": float(s.exposure_s),
-                "path": f"{CALIBRATION_DIR}/{REFERENCE_KIND}/{name}",
-                "sha256": hashlib.sha256(s.data).hexdigest(),
-                "pose": int(s.pose),
-                "axes_rad": {k: float(v) for k, v in s.axes_rad.items()},
-                "light_measured": None if s.light_measured is None else float(s.light_measured),
-            }
-        )
-    entries = [e for e in calibration_frames(run_dir) if e.get("kind") != REFERENCE_KIND] + new
-    atomic_write_bytes(
-        run_dir / CALIBRATION_DIR / INDEX_NAME,
-        json.dumps({"frames": entries}, indent=1).encode(),
-    )
-    return new
-
-
-# Reference poses (θ_i, φ_i, θ_o, φ_o in deg): the 0°/45° geometry of reflectance-standard
-# certificates, and two more geometries so a pose-dependent error (f_ref, geometry) shows up as
-# scatter between poses (the Birge ratio of combine_scales).
-REFERENCE_POSES_DEG = (
-    (0.0, 0.0, 45.0, 180.0),
-    (30.0, 0.0, 30.0, 90.0),
-    (45.0, 0.0, 10.0, 270.0),
-)
-
-
-def record_reference_poses(
-    run_dir: str | Path,
-    capture,
-    kinematics,
-    exposures_s: list[float],
-    *,
-    target: ReferenceTarget | None = None,
-    poses_deg=REFERENCE_POSES_DEG,
-    level: float | None = None,
-) -> list[dict]:
-    """Drive to each reference pose and capture every exposure with
-    ``capture(exposure_s, light_pos_m, camera_pos_m) -> Frame`` (the target in the sample's
-    place), then file the shots (`record_reference_frames`). ``kinematics`` is
-    `acquisition.kinematics.Kinematics`; ``level`` is the light monitor's reading to record."""
-    from acquisition.kinematics import Pose
-
-    shots = []
-    for j, deg in enumerate(poses_deg):
-        axes = kinematics.targets(Pose.from_deg(*deg))
-        light_pos = kinematics.light_position_m(axes)
-        cam_pos = kinematics.camera_position_m(axes)
-        for t in exposures_s:
-            frame = capture(float(t), light_pos, cam_pos)
-            shots.append(ReferenceShot(j, axes, float(t), frame.data, frame.suffix, level))
-    return record_reference_frames(run_dir, target or ReferenceTarget(), shots)
 
 
 def reference_entries(run_dir: str | Path) -> dict[int, list[dict]]:
@@ -305,22 +215,26 @@ def reference_entries(run_dir: str | Path) -> dict[int, list[dict]]:
 
 
 def load_reference_target(run_dir: str | Path) -> ReferenceTarget:
-    """The reference target recorded with the run (``calibration/reference/target.json``)."""
-    folder = Path(run_dir) / CALIBRATION_DIR / REFERENCE_KIND
-    try:
-        d = json.loads((folder / TARGET_NAME).read_text())
-    except (OSError, ValueError):
-        raise CalibrationFrameError(
-            f"{folder / TARGET_NAME}: missing or unreadable reference target description"
-        ) from None
+    """The reference target recorded with the run's reference take: what the rig file's
+    [reference] said (albedo or the f_ref table, copied into the run), and its certificate's
+    relative uncertainty."""
+    run_dir = Path(run_dir)
+    d = calibration_take_description(run_dir, REFERENCE_KIND)
+    where = f"{run_dir}: reference target"
+    rel = float(d.get("rel_sigma", 0.0) or 0.0)
+    size = float(d["size_m"]) if d.get("size_m") else None
     if d.get("type") == "lambertian":
         rho = d.get("reflectance")
         if not (isinstance(rho, list) and len(rho) == 3 and all(0 < float(r) <= 1 for r in rho)):
-            raise CalibrationFrameError(f"{folder / TARGET_NAME}: reflectance must be 3 values")
-        return ReferenceTarget(reflectance=tuple(float(r) for r in rho))
+            raise CalibrationFrameError(f"{where}: reflectance must be 3 values in (0, 1]")
+        return ReferenceTarget(reflectance=tuple(float(r) for r in rho), rel_sigma=rel, size_m=size)
     if d.get("type") == "table":
-        return ReferenceTarget(reflectance=None, table=load_f_ref_table(folder / d["file"]))
-    raise CalibrationFrameError(f"{folder / TARGET_NAME}: type must be 'lambertian' or 'table'")
+        rel_path = Path(str(d.get("file", "")))
+        if rel_path.is_absolute() or ".." in rel_path.parts:
+            raise CalibrationFrameError(f"{where}: table path {rel_path} is not inside the run")
+        table = load_f_ref_table(run_dir / rel_path)
+        return ReferenceTarget(reflectance=None, table=table, rel_sigma=rel, size_m=size)
+    raise CalibrationFrameError(f"{where}: no description recorded (type lambertian or table)")
 
 
 @dataclass

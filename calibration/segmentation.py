@@ -146,100 +146,127 @@ def segment_sample(
     top = float(f.max()) if (f > 0).any() else 1.0
     floor = np.maximum(3.0 * np.abs(sd), 1e-9 * top)
     fc = np.maximum(f, floor)
-    ell = np.log(fc)
-    var_ell = np.where(f > floor, (sd / fc) ** 2, 0.0)
+    log_image = (np.log(fc), np.where(f > floor, (sd / fc) ** 2, 0.0))  # ℓ and σ_ℓ²
     centre = pts.mean(axis=0)
     offsets = np.zeros((4, 2))
     found = 0
-    d_grid = np.arange(-band_px, band_px + 1e-9, 0.25)
+    search = _EdgeSearch(np.arange(-band_px, band_px + 1e-9, 0.25), k_sigma, min_step, segment_px)
     for k in range(4):
         a, b = pts[k], pts[(k + 1) % 4]
-        side = b - a
-        length = float(np.hypot(*side))
+        length = float(np.hypot(*(b - a)))
         if length < 6.0:
             continue
-        t_hat = side / length
-        n_hat = np.array([t_hat[1], -t_hat[0]])
-        if np.dot(n_hat, (a + b) / 2 - centre) < 0:
-            n_hat = -n_hat
-        # Stay 3 px clear of the corners, where the neighbouring side's edge crosses.
-        n_seg = max(2, int((length - 6.0) // segment_px))
-        t = np.arange(3.0, length - 3.0, 0.5)
-        seg_id = np.minimum(((t - 3.0) / ((length - 6.0) / n_seg)).astype(int), n_seg - 1)
-        base = a[None, None, :] + t[None, :, None] * t_hat  # (1, T, 2)
-        # All offsets at once: (D, T) samples just outside and just inside each offset line.
-        p_out = base + (d_grid[:, None, None] + 1.0) * n_hat
-        p_in = base + (d_grid[:, None, None] - 1.0) * n_hat
-        diff = _sample_bilinear(ell, p_out[..., 0], p_out[..., 1]) - _sample_bilinear(
-            ell, p_in[..., 0], p_in[..., 1]
-        )
-        var = _sample_bilinear(var_ell, p_out[..., 0], p_out[..., 1]) + _sample_bilinear(
-            var_ell, p_in[..., 0], p_in[..., 1]
-        )
-        ts, ds, ws = [], [], []
-        # Per-segment means in one pass (seg_id is sorted along the side).
-        starts = np.flatnonzero(np.r_[True, seg_id[1:] != seg_id[:-1]])
-        counts = np.diff(np.r_[starts, len(t)])
-        mean_diff = np.add.reduceat(diff, starts, axis=1) / counts
-        mean_var = np.add.reduceat(var, starts, axis=1) / counts
-        t_mid = np.add.reduceat(t, starts) / counts
-        for g in range(len(starts)):
-            n_t = int(counts[g])
-            if n_t < 4:
-                continue
-            steps = np.abs(mean_diff[:, g])
-            # Samples 0.5 px apart share pixels: count one independent sample per pixel.
-            noise = np.sqrt(mean_var[:, g] / (n_t / 2.0))
-            # The sample is the region around the core, so its edge is the *innermost*
-            # significant step (a holder's own outer edge, often much stronger, lies beyond).
-            # A step is an edge only if it stands out of its surroundings 2.5 px either side:
-            # a BRDF lobe's smooth gradient gives a similar step at every offset (no
-            # prominence), a sharp edge gives a peak (the ±1 px difference of a ≤ 1 px blurred
-            # step vanishes 2.5 px away).
-            m = 10  # 2.5 px in 0.25 px steps
-            idx = np.arange(len(steps))
-            around = 0.5 * (
-                steps[np.clip(idx - m, 0, len(steps) - 1)]
-                + steps[np.clip(idx + m, 0, len(steps) - 1)]
-            )
-            strong = steps - around > np.maximum(k_sigma * noise, min_step)
-            peak = np.r_[
-                steps[0] >= steps[1],
-                (steps[1:-1] >= steps[:-2]) & (steps[1:-1] >= steps[2:]),
-                steps[-1] >= steps[-2],
-            ]
-            cand = np.flatnonzero(strong & peak)
-            if cand.size:
-                j = int(cand[0])
-                # Sub-step position: the centroid of the peak above half its prominence. A
-                # sharp step gives a flat-topped s(d) (the ±1 px difference spans it for 1 px
-                # of d), whose centre, not its first point, is the edge.
-                half = 0.5 * (steps[j] + around[j])
-                lo = hi = j
-                while lo > 0 and steps[lo - 1] > half:
-                    lo -= 1
-                while hi < len(steps) - 1 and steps[hi + 1] > half:
-                    hi += 1
-                wgt = steps[lo : hi + 1] - half
-                d_best = float(np.sum(wgt * d_grid[lo : hi + 1]) / np.sum(wgt))
-                ts.append(float(t_mid[g]))
-                ds.append(d_best)
-                ws.append(n_t)
+        ts, ds, ws = _side_edges(log_image, a, b, _outward(a, b, centre), search)
         coef = _robust_line(
             np.array(ts), np.array(ds), np.array(ws, dtype=float), max_tilt_px=band_px / 2
         )
         if coef is not None:
             offsets[k] = [coef[1], coef[0] * length + coef[1]]
             found += 1
-    # Corners of the quadrilateral bounded by the four shifted side lines.
+    new = _shifted_quadrilateral(pts, offsets, centre)
+    return Segmentation(polygon_mask(shape, new), new, found, offsets)
+
+
+@dataclass(frozen=True)
+class _EdgeSearch:
+    d_grid: np.ndarray  # offsets along the outward normal tried (px)
+    k_sigma: float
+    min_step: float
+    segment_px: float
+
+
+def _outward(a: np.ndarray, b: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Unit normal of side a→b pointing away from the quadrilateral's centre."""
+    t_hat = (b - a) / np.hypot(*(b - a))
+    n_hat = np.array([t_hat[1], -t_hat[0]])
+    return -n_hat if np.dot(n_hat, (a + b) / 2 - centre) < 0 else n_hat
+
+
+def _side_edges(log_image, a, b, n_hat, search: _EdgeSearch):  # noqa: ANN001
+    """(t, edge offset, weight) of every segment of side a→b where an edge is found."""
+    ell, var_ell = log_image
+    length = float(np.hypot(*(b - a)))
+    t_hat = (b - a) / length
+    d_grid = search.d_grid
+    # Stay 3 px clear of the corners, where the neighbouring side's edge crosses.
+    n_seg = max(2, int((length - 6.0) // search.segment_px))
+    t = np.arange(3.0, length - 3.0, 0.5)
+    seg_id = np.minimum(((t - 3.0) / ((length - 6.0) / n_seg)).astype(int), n_seg - 1)
+    base = a[None, None, :] + t[None, :, None] * t_hat  # (1, T, 2)
+    # All offsets at once: (D, T) samples just outside and just inside each offset line.
+    p_out = base + (d_grid[:, None, None] + 1.0) * n_hat
+    p_in = base + (d_grid[:, None, None] - 1.0) * n_hat
+    diff = _sample_bilinear(ell, p_out[..., 0], p_out[..., 1]) - _sample_bilinear(
+        ell, p_in[..., 0], p_in[..., 1]
+    )
+    var = _sample_bilinear(var_ell, p_out[..., 0], p_out[..., 1]) + _sample_bilinear(
+        var_ell, p_in[..., 0], p_in[..., 1]
+    )
+    ts, ds, ws = [], [], []
+    # Per-segment means in one pass (seg_id is sorted along the side).
+    starts = np.flatnonzero(np.r_[True, seg_id[1:] != seg_id[:-1]])
+    counts = np.diff(np.r_[starts, len(t)])
+    mean_diff = np.add.reduceat(diff, starts, axis=1) / counts
+    mean_var = np.add.reduceat(var, starts, axis=1) / counts
+    t_mid = np.add.reduceat(t, starts) / counts
+    for g in range(len(starts)):
+        n_t = int(counts[g])
+        if n_t < 4:
+            continue
+        # Samples 0.5 px apart share pixels: count one independent sample per pixel.
+        noise = np.sqrt(mean_var[:, g] / (n_t / 2.0))
+        d_best = _innermost_edge(np.abs(mean_diff[:, g]), noise, search)
+        if d_best is not None:
+            ts.append(float(t_mid[g]))
+            ds.append(d_best)
+            ws.append(n_t)
+    return ts, ds, ws
+
+
+def _innermost_edge(steps: np.ndarray, noise: np.ndarray, search: _EdgeSearch) -> float | None:
+    """The offset of the innermost significant step s(d), to a fraction of the grid step.
+
+    The sample is the region around the core, so its edge is the *innermost* significant step
+    (a holder's own outer edge, often much stronger, lies beyond). A step is an edge only if it
+    stands out of its surroundings 2.5 px either side: a BRDF lobe's smooth gradient gives a
+    similar step at every offset (no prominence), a sharp edge gives a peak (the ±1 px
+    difference of a ≤ 1 px blurred step vanishes 2.5 px away)."""
+    d_grid = search.d_grid
+    m = 10  # 2.5 px in 0.25 px steps
+    idx = np.arange(len(steps))
+    around = 0.5 * (
+        steps[np.clip(idx - m, 0, len(steps) - 1)] + steps[np.clip(idx + m, 0, len(steps) - 1)]
+    )
+    strong = steps - around > np.maximum(search.k_sigma * noise, search.min_step)
+    peak = np.r_[
+        steps[0] >= steps[1],
+        (steps[1:-1] >= steps[:-2]) & (steps[1:-1] >= steps[2:]),
+        steps[-1] >= steps[-2],
+    ]
+    cand = np.flatnonzero(strong & peak)
+    if not cand.size:
+        return None
+    j = int(cand[0])
+    # Sub-step position: the centroid of the peak above half its prominence. A sharp step
+    # gives a flat-topped s(d) (the ±1 px difference spans it for 1 px of d), whose centre,
+    # not its first point, is the edge.
+    half = 0.5 * (steps[j] + around[j])
+    lo = hi = j
+    while lo > 0 and steps[lo - 1] > half:
+        lo -= 1
+    while hi < len(steps) - 1 and steps[hi + 1] > half:
+        hi += 1
+    wgt = steps[lo : hi + 1] - half
+    return float(np.sum(wgt * d_grid[lo : hi + 1]) / np.sum(wgt))
+
+
+def _shifted_quadrilateral(pts: np.ndarray, offsets: np.ndarray, centre: np.ndarray):
+    """Corners of the quadrilateral bounded by the four sides shifted outward by `offsets`
+    (px, at each side's two ends)."""
     lines = []
     for k in range(4):
         a, b = pts[k], pts[(k + 1) % 4]
-        side = b - a
-        t_hat = side / np.hypot(*side)
-        n_hat = np.array([t_hat[1], -t_hat[0]])
-        if np.dot(n_hat, (a + b) / 2 - centre) < 0:
-            n_hat = -n_hat
+        n_hat = _outward(a, b, centre)
         lines.append((a + offsets[k, 0] * n_hat, b + offsets[k, 1] * n_hat))
     new = np.empty((4, 2))
     for k in range(4):
@@ -251,4 +278,4 @@ def segment_sample(
             continue
         s = ((p3[0] - p1[0]) * d2[1] - (p3[1] - p1[1]) * d2[0]) / den
         new[k] = p1 + s * d1
-    return Segmentation(polygon_mask(shape, new), new, found, offsets)
+    return new

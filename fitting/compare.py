@@ -409,20 +409,24 @@ def candidates(
     *,
     compare_shared: bool = False,
 ) -> list[Candidate]:
-    """The fits a ``gonio fit --model`` call asks for. ``model="all"``: every registered model
-    (``options`` go to the models that take them, i.e. torrance-sparrow; shared names a model
-    lacks are dropped for it). ``m`` stands for the Phong exponent n where a model has no m;
-    any other unknown shared name is an error for a single model. With
-    ``compare_shared`` each model whose shared set is non-empty is fitted again with every
-    parameter per channel (label suffix ``-per-channel``)."""
-    from fitting import models as registry
+    """The fits a ``gonio fit --model`` call asks for. ``model="all"``: the registry's group
+    "all" (:func:`fitting.registry.group`; each model takes the ``options`` that apply to it and
+    have an allowed value, :func:`fitting.registry.applicable_options`; shared names a model
+    lacks are dropped for it). A single model may be a registered name, a named variant or an
+    alias; its options are validated by the registry (ValueError naming the allowed ones).
+    ``m`` stands for the Phong exponent n where a model has no m; any other unknown shared
+    name is an error for a single model. With ``compare_shared`` each model whose shared set
+    is non-empty is fitted again with every parameter per channel (label suffix
+    ``-per-channel``)."""
+    from fitting import registry
 
-    names = registry.names() if model == "all" else [model]
+    names = registry.group("all") if model == "all" else [model]
     out = []
     for name in names:
-        opts = dict(options or {})
-        if model == "all" and name != "torrance-sparrow":
-            opts = {}
+        if model == "all":
+            opts = registry.applicable_options(name, options)
+        else:
+            opts = {str(k): str(v) for k, v in (options or {}).items()}
         m = registry.get(name, **opts)
         sh = _shared_for(m, shared)
         unknown = set(shared) - set(m.parameter_names) - {"m"}
@@ -457,15 +461,16 @@ def restrict(model, fix: Mapping[str, float] | None, priors) -> tuple[dict, obje
 def run_comparison(
     table,
     cands: Sequence[Candidate],
+    base,
     *,
     out_dir: str | os.PathLike,
-    fix: Mapping[str, float] | None = None,
-    priors=None,
     max_draws: int = 500,
     on_fit=None,
-    **fit_kwargs,
+    progress: bool = False,
 ) -> tuple[list[ModelScore], dict]:
-    """Fit every candidate (fit-<label>.json/.h5 in ``out_dir``), score and rank them, write
+    """Fit every candidate with the `base` FitOptions (its model, options and shared names
+    replaced by the candidate's; its fixes and priors reduced to the names the model knows),
+    write fit-<label>.json/.h5 in ``out_dir``, score and rank them, write
     ``out_dir/compare.json``. ``on_fit(candidate, result)`` is called after each fit.
     Returns (ranked scores, {label: FitResult})."""
     from fitting import models as registry
@@ -473,25 +478,20 @@ def run_comparison(
     from fitting.priors import PriorsConfig, load_priors
 
     out_dir = Path(out_dir)
+    priors = base.priors
     if priors is not None and not isinstance(priors, PriorsConfig):
         priors = load_priors(priors)
     results, scores = {}, []
     for c in cands:
         model = registry.get(c.model, **c.options)
-        fx, pr = restrict(model, fix, priors)
-        sub = out_dir if c.label == c.model else out_dir / c.label
-        res = fit_samples(
-            table,
-            c.model,
-            c.options,
-            shared=c.shared,
-            fix=fx,
-            priors=pr,
-            out_dir=sub,
-            **fit_kwargs,
+        fx, pr = restrict(model, base.fix, priors)
+        opts = base.replace(
+            model=c.model, model_options=dict(c.options), shared=c.shared, fix=fx, priors=pr
         )
+        sub = out_dir if c.label == c.model else out_dir / c.label
+        res = fit_samples(table, opts, out_dir=sub, progress=progress)
         results[c.label] = res
-        scores.append(score_fit(res, c.label, max_draws=max_draws, seed=fit_kwargs.get("seed", 0)))
+        scores.append(score_fit(res, c.label, max_draws=max_draws, seed=base.seed))
         if on_fit is not None:
             on_fit(c, res)
     ranked = rank(scores)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "grid_direction_pairs",
     "spherical_to_vector",
     "vector_to_spherical",
     "normalize",
@@ -73,6 +74,16 @@ def uniform_hemisphere(count: int, rng: np.random.Generator | int | None) -> np.
 #: in θ_o, since θ_h ≈ δ/2 in the plane, so ≥ 6 samples per side lie inside it), then widening
 #: steps that follow lobes up to m ≈ 0.6 (1/e at ≈ 70°).
 SPECULAR_OFFSETS_DEG = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 9.0, 13.0, 18.0, 25.0, 35.0, 50.0)
+
+
+def grid_direction_pairs(theta_i_deg, theta_o_deg, phi_o_deg) -> tuple[np.ndarray, np.ndarray]:
+    """Every (ω_i, ω_o) of a full grid: θ_i (deg, light at φ = 0) × θ_o × φ_o (deg), each
+    (N, 3) with N the product of the three lengths, θ_i slowest."""
+    ti, to, po = np.meshgrid(
+        np.radians(theta_i_deg), np.radians(theta_o_deg), np.radians(phi_o_deg), indexing="ij"
+    )
+    ti, to, po = ti.ravel(), to.ravel(), po.ravel()
+    return spherical_to_vector(ti, np.zeros_like(ti)), spherical_to_vector(to, po)
 
 
 def isotropic_gonio_directions(

@@ -14,24 +14,36 @@ likelihood, discrepancy term included), k the number of free parameters.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from fitting import models
-from fitting.likelihood import Likelihood
+from fitting.budget import add_systematic, read_budget
+from fitting.likelihood import DARK_SNR, Likelihood
 from fitting.lsq import fit_least_squares
-from fitting.mcmc import rhat_across, run_mcmc
+from fitting.mcmc import (
+    ChainFile,
+    ConvergenceTarget,
+    McmcOptions,
+    extend_chain,
+    rhat_across,
+    run_mcmc,
+)
+from fitting.moves import SAMPLER_REVISION
 from fitting.priors import DISCREPANCY, ParameterSpace, PriorsConfig, albedo_prior, load_priors
 from fitting.result import FitResult
 from fitting.samples import SampleTable
+from fitting.verdicts import judge
 
-__all__ = ["fit_samples", "summarise"]
+__all__ = ["FitOptions", "fit_samples", "summarise"]
 
 
 def summarise(space: ParameterSpace, draws: np.ndarray, x_map: np.ndarray) -> dict[str, dict]:
@@ -70,11 +82,18 @@ def _best_discrepancy(lik: Likelihood, x: np.ndarray) -> np.ndarray:
 
 
 def _fingerprint(lik: Likelihood, model_name, options, kind, nu, censor) -> str:
-    """SHA-256 of what defines the posterior: data, model, options, parameter space."""
+    """SHA-256 of what defines the posterior: data, model, options, parameter space.
+
+    ``censor`` enters as whether censored rows are actually in the likelihood: on a table with
+    no DARK or SATURATED sample both settings give the same posterior, so a chain stored before
+    censoring became the default (issue 18) is still continued; where flagged rows exist the
+    data arrays differ anyway and a stored chain of the other setting is replaced, and said so
+    (``McmcResult.replaced_steps``, printed by ``gonio fit``)."""
+    censor = bool(censor) and any(bool(d.kind.any()) for d in lik.data)
     h = hashlib.sha256()
-    h.update(
-        json.dumps([model_name, options, kind, nu, censor], sort_keys=True, default=str).encode()
-    )
+    # SAMPLER_REVISION: a chain drawn by an earlier, wrong sampler is replaced, not continued.
+    key = [model_name, options, kind, nu, censor, SAMPLER_REVISION]
+    h.update(json.dumps(key, sort_keys=True, default=str).encode())
     h.update(
         json.dumps(
             [lik.space.names, lik.space.fixed, [s.internal_bounds for s in lik.space.specs]]
@@ -86,111 +105,127 @@ def _fingerprint(lik: Likelihood, model_name, options, kind, nu, censor) -> str:
     return h.hexdigest()
 
 
-def fit_samples(
-    table: SampleTable,
-    model_name: str,
-    options: Mapping | None = None,
-    *,
-    channels: Sequence[str] | None = None,
-    shared: Sequence[str] | None = None,
-    fix: Mapping[str, float] | None = None,
-    priors: PriorsConfig | str | os.PathLike | None = None,
-    energy_conservation: bool = False,
-    mcmc: bool = True,
-    walkers: int = 32,
-    steps: int = 2000,
-    time_budget_s: float | None = None,
-    seed: int = 0,
-    out_dir: str | os.PathLike | None = None,
-    likelihood: str = "gaussian",
-    nu: float = 4.0,
-    censor: bool = False,
-    discrepancy: bool = True,
-    weighting: str = "sigma",
-    loss: str | None = None,
-    n_starts: int = 8,
-    progress: bool = False,
-    ensembles: int = 1,
-    moves: str = "de",
-    target_ess: float | None = None,
-) -> FitResult:
-    """Fit ``model_name`` to ``table``; write fit-<model>.json (+ .h5 chain) into ``out_dir``.
+@dataclass(frozen=True)
+class FitOptions:
+    """Everything that defines a fit besides the data (built once by the CLI, the demo and the
+    studies; `replace(**changes)` for a variant).
 
-    ``shared=None`` shares m and the Fresnel parameters; kd, ks are per channel. ``fix`` holds
-    parameters at natural values (bare or per-channel names). ``steps`` is the MCMC maximum
-    per ensemble. ``ensembles`` ≥ 2 runs independent ensembles (seeds drawn from ``seed``,
-    groups ``mcmc``, ``mcmc_1``… in the .h5), pools their chains, and reports R̂ across them
-    (walker-mean traces, one per ensemble); with one ensemble R̂ is the split-walker R̂.
-    τ, ESS and acceptance are then those of the first ensemble, ESS × ensembles.
+    ``model``/``model_options``: a registered model and its options. ``channels``: which to fit
+    (default: all present). ``shared``: parameters shared by the channels (None: m and the
+    Fresnel parameters; kd, ks per channel). ``fix``: parameters held at natural values (bare
+    or per-channel names). ``priors``: a PriorsConfig or a priors file. ``steps`` is the MCMC
+    maximum per ensemble; ``ensembles`` ≥ 2 runs independent ensembles (seeds drawn from
+    ``seed``, groups ``mcmc``, ``mcmc_1``… in the .h5), pools their chains and reports R̂ across
+    them; with one ensemble R̂ is the split-walker R̂ (τ, ESS and acceptance are then those of
+    the first ensemble, ESS × ensembles).
     """
-    t0 = time.perf_counter()
-    options = dict(options or {})
-    model = models.get(model_name, **options)
+
+    model: str = "torrance-sparrow"
+    model_options: Mapping[str, str] = field(default_factory=dict)
+    channels: Sequence[str] | None = None
+    shared: Sequence[str] | None = None
+    fix: Mapping[str, float] = field(default_factory=dict)
+    priors: PriorsConfig | str | os.PathLike | None = None
+    energy_conservation: bool = False
+    mcmc: bool = True
+    walkers: int = 32
+    steps: int = 2000
+    time_budget_s: float | None = None
+    seed: int = 0
+    likelihood: str = "gaussian"
+    nu: float = 4.0
+    # DARK / SATURATED samples as censored observations (issue 18: the default; False drops
+    # them, `gonio fit --drop-flagged`).
+    censor: bool = True
+    discrepancy: bool = True
+    weighting: str = "sigma"
+    loss: str | None = None
+    n_starts: int = 8
+    ensembles: int = 1
+    moves: str = "de"
+    target_ess: float | None = None
+    # A second stop rule: after emcee's own criterion, run on until every R̂ and ESS meet this
+    # target (fitting.mcmc.extend_chain), within `steps` in all.
+    converge: ConvergenceTarget | None = None
+
+    def replace(self, **changes) -> FitOptions:
+        return dataclasses.replace(self, **changes)
+
+
+def _setup(table: SampleTable, opt: FitOptions):
+    """(model, channels, parameter space, likelihood) of a fit."""
+    model = models.get(opt.model, **dict(opt.model_options))
     present = table.channels
-    channels = list(channels) if channels is not None else present
+    channels = list(opt.channels) if opt.channels is not None else present
     missing = [c for c in channels if c not in present]
     if missing:
         raise ValueError(
             f"channel(s) {', '.join(missing)} not in the samples (present: {', '.join(present)})"
         )
+    priors = opt.priors
     if priors is not None and not isinstance(priors, PriorsConfig):
         priors = load_priors(priors)
     space = ParameterSpace.build(
-        model, channels, shared=shared, fix=fix, priors=priors, discrepancy=discrepancy
+        model,
+        channels,
+        shared=opt.shared,
+        fix=dict(opt.fix),
+        priors=priors,
+        discrepancy=opt.discrepancy,
     )
-    if energy_conservation or (priors is not None and priors.energy_conservation):
+    if opt.energy_conservation or (priors is not None and priors.energy_conservation):
         space.energy_prior = albedo_prior(model, space)
-    lik = Likelihood(model, table, space, kind=likelihood, nu=nu, censor=censor, channels=channels)
-    lsq = fit_least_squares(lik, weighting=weighting, loss=loss, n_starts=n_starts, seed=seed)
+    lik = Likelihood(
+        model,
+        table,
+        space,
+        kind=opt.likelihood,
+        nu=opt.nu,
+        censor=opt.censor,
+        channels=channels,
+        dark_snr=_dark_snr(table),
+    )
+    return model, channels, space, lik
+
+
+def _dark_snr(table: SampleTable) -> float:
+    """The DARK rule's f/σ limit the calibration used (its metadata), else its default."""
+    try:
+        value = json.loads(table.metadata.get("gonio.calibration", "{}")).get("min_snr")
+    except (TypeError, ValueError, AttributeError):
+        value = None
+    return float(value) if isinstance(value, int | float) and value > 0 else DARK_SNR
+
+
+def fit_samples(
+    table: SampleTable,
+    options: FitOptions | None = None,
+    *,
+    out_dir: str | os.PathLike | None = None,
+    progress: bool = False,
+) -> FitResult:
+    """Fit ``options.model`` to ``table``; write fit-<model>.json (+ .h5 chain) into
+    ``out_dir`` (see FitOptions for every choice)."""
+    opt = options or FitOptions()
+    t0 = time.perf_counter()
+    _model, channels, space, lik = _setup(table, opt)
+    lsq = fit_least_squares(
+        lik, weighting=opt.weighting, loss=opt.loss, n_starts=opt.n_starts, seed=opt.seed
+    )
     # The fractional discrepancy scales with the least-squares prediction, frozen (see
     # fitting.likelihood: a θ-dependent scale rewards overshooting, a measured one biases).
     lik.set_discrepancy_reference(lsq.x)
     x_lsq = _best_discrepancy(lik, lsq.x)
-
     out_dir = Path(out_dir) if out_dir is not None else None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
-    lo, hi = space.bounds
+    rng = np.random.default_rng(opt.seed)
     extras: dict = {"lsq": lsq, "likelihood": lik, "space": space}
-    if mcmc:
-        scale = None
-        if lsq.cov is not None:
-            scale = np.sqrt(np.clip(np.diag(lsq.cov), 0, None))
-            scale = np.where(scale > 0, scale, 1e-3)
-        fingerprint = _fingerprint(lik, model_name, options, likelihood, nu, censor)
-        runs = []
-        for e in range(max(1, int(ensembles))):
-            h5 = None
-            if out_dir is not None:
-                h5 = out_dir / f"fit-{model_name}.h5"
-            runs.append(
-                run_mcmc(
-                    lik.log_prob,
-                    x_lsq,
-                    bounds=(lo, hi),
-                    walkers=walkers,
-                    max_steps=steps,
-                    time_budget_s=time_budget_s,
-                    rng=rng,
-                    scale=scale,
-                    backend_path=h5,
-                    backend_name="mcmc" if e == 0 else f"mcmc_{e}",
-                    progress=progress,
-                    moves=moves,
-                    target_ess=target_ess,
-                    fingerprint=fingerprint,
-                )
-            )
-        res = runs[0]
-        if len(runs) > 1:
-            n_keep = min(r.chain.shape[0] for r in runs)
-            res.chain = np.concatenate([r.chain[-n_keep:] for r in runs], axis=1)
-            res.log_prob = np.concatenate([r.log_prob[-n_keep:] for r in runs], axis=1)
-            res.rhat = rhat_across([r.chain for r in runs])
-            res.ess = np.sum([r.ess for r in runs], axis=0)
-            res.converged = all(r.converged for r in runs)
-            res.stop_reason = ",".join(dict.fromkeys(r.stop_reason for r in runs))
+    if opt.mcmc:
+        h5 = None if out_dir is None else out_dir / f"fit-{opt.model}.h5"
+        res = _run_ensembles(lik, lsq, x_lsq, opt, rng, h5, progress)
+        if opt.converge is not None:
+            res = extend_chain(res, lik.log_prob, opt.converge, opt.steps, opt.seed) or res
         draws = res.flat
         flat_lp = res.log_prob.reshape(-1)
         lp_lsq = lik.log_prob(x_lsq)
@@ -200,28 +235,15 @@ def fit_samples(
             "tau": dict(zip(names, res.tau.tolist(), strict=True)),
             "ess": dict(zip(names, res.ess.tolist(), strict=True)),
             "acceptance": res.acceptance,
-            "converged": res.converged,
+            "converged": False,  # set by the verdicts below
             "rhat": dict(zip(names, res.rhat.tolist(), strict=True)),
             "stop_reason": res.stop_reason,
         }
         extras["mcmc"] = res
+        extras["notes"] = _chain_notes(res, h5)
     else:
         x_map = x_lsq
-        if lsq.cov is not None:
-            cov = lsq.cov.copy()
-            i_disc = [i for i, s in enumerate(space.specs) if s.base == DISCREPANCY[0]]
-            for i in i_disc:  # not constrained by LSQ: keep it at its point value
-                cov[i, :] = cov[:, i] = 0
-            if i_disc and weighting == "sigma":
-                # With a discrepancy term σ is not trusted alone: inflate by χ²/dof ≥ 1
-                # (the usual Birge-ratio correction) so the Laplace interval is not
-                # overconfident when the model does not fit.
-                r = lik.residuals(x_lsq, "sigma")
-                cov *= max(1.0, float(np.sum(r**2)) / max(lik.n_exact - space.ndim, 1))
-            draws = rng.multivariate_normal(x_lsq, cov, size=4000, method="eigh")
-            draws = np.clip(draws, lo, hi)
-        else:
-            draws = np.repeat(x_lsq[None, :], 2, axis=0)
+        draws = _laplace_draws(lik, lsq, x_lsq, opt, rng)
         diagnostics = {
             "tau": {},
             "ess": {},
@@ -230,13 +252,114 @@ def fit_samples(
             "rhat": {},
             "stop_reason": "no_mcmc",
         }
-    k = space.ndim
+    # The shared errors of the samples' budget (fitting.budget): sd_stat / sd_sys / sd_total.
+    parameters, budget_notes = add_systematic(
+        summarise(space, draws, x_map), _model, channels, read_budget(table.metadata)
+    )
+    diagnostics["budget"] = budget_notes
+    result = FitResult(
+        model=opt.model,
+        options=dict(opt.model_options),
+        channels=channels,
+        parameters=parameters,
+        diagnostics=diagnostics,
+        goodness=_goodness(lik, x_map),
+        n_samples=int(lik.n),
+        wall_time_s=time.perf_counter() - t0,
+        fixed=dict(space.fixed),
+        extras=extras,
+    )
+    # The verdicts (fitting.verdicts); "converged" then means their stated criteria.
+    result.verdicts, conv = judge(result, lik, extras.get("mcmc"))
+    result.diagnostics.update(conv)
+    if out_dir is not None:
+        result.write(out_dir / f"fit-{opt.model}.json")
+    return result
+
+
+def _chain_notes(res, h5) -> list[str]:  # noqa: ANN001
+    """One line when the run replaced a stored chain of another problem (never silently)."""
+    if not getattr(res, "replaced_steps", 0) or h5 is None:
+        return []
+    return [
+        f"{Path(h5).name}: its stored {res.replaced_steps}-step chain was made with other data "
+        "or options (e.g. before censoring became the default) and was replaced by a new one"
+    ]
+
+
+def _run_ensembles(lik, lsq, x_lsq, opt: FitOptions, rng, h5, progress: bool):
+    """emcee from a ball around the LSQ point; several ensembles pooled (R̂ across them)."""
+    lo, hi = lik.space.bounds
+    scale = None
+    if lsq.cov is not None:
+        scale = np.sqrt(np.clip(np.diag(lsq.cov), 0, None))
+        scale = np.where(scale > 0, scale, 1e-3)
+    fingerprint = _fingerprint(
+        lik, opt.model, dict(opt.model_options), opt.likelihood, opt.nu, opt.censor
+    )
+    mcmc = McmcOptions(
+        walkers=opt.walkers,
+        max_steps=opt.steps,
+        time_budget_s=opt.time_budget_s,
+        target_ess=opt.target_ess,
+        moves=opt.moves,
+    )
+    runs = [
+        run_mcmc(
+            lik.log_prob,
+            x_lsq,
+            (lo, hi),
+            mcmc,
+            rng=rng,
+            scale=scale,
+            store=None
+            if h5 is None
+            else ChainFile(h5, "mcmc" if e == 0 else f"mcmc_{e}", fingerprint),
+            progress=progress,
+        )
+        for e in range(max(1, int(opt.ensembles)))
+    ]
+    res = runs[0]
+    if len(runs) > 1:
+        n_keep = min(r.chain.shape[0] for r in runs)
+        res.chain = np.concatenate([r.chain[-n_keep:] for r in runs], axis=1)
+        res.log_prob = np.concatenate([r.log_prob[-n_keep:] for r in runs], axis=1)
+        res.rhat = rhat_across([r.chain for r in runs])
+        res.ess = np.sum([r.ess for r in runs], axis=0)
+        res.converged = all(r.converged for r in runs)
+        res.stop_reason = ",".join(dict.fromkeys(r.stop_reason for r in runs))
+        res.replaced_steps = max(r.replaced_steps for r in runs)
+    return res
+
+
+def _laplace_draws(lik, lsq, x_lsq, opt: FitOptions, rng) -> np.ndarray:
+    """Draws of the Laplace approximation N(x̂, C_LSQ), clipped to the prior box."""
+    space = lik.space
+    lo, hi = space.bounds
+    if lsq.cov is None:
+        return np.repeat(x_lsq[None, :], 2, axis=0)
+    cov = lsq.cov.copy()
+    i_disc = [i for i, s in enumerate(space.specs) if s.base == DISCREPANCY[0]]
+    for i in i_disc:  # not constrained by LSQ: keep it at its point value
+        cov[i, :] = cov[:, i] = 0
+    if i_disc and opt.weighting == "sigma":
+        # With a discrepancy term σ is not trusted alone: inflate by χ²/dof ≥ 1 (the usual
+        # Birge-ratio correction) so the Laplace interval is not overconfident when the model
+        # does not fit.
+        r = lik.residuals(x_lsq, "sigma")
+        cov *= max(1.0, float(np.sum(r**2)) / max(lik.n_exact - space.ndim, 1))
+    draws = rng.multivariate_normal(x_lsq, cov, size=4000, method="eigh")
+    return np.clip(draws, lo, hi)
+
+
+def _goodness(lik, x_map) -> dict:
+    k = lik.space.ndim
     n = lik.n_exact
     r = lik.residuals(x_map, "sigma")
     ll = float(lik.log_likelihood(x_map)[0])
     chi2 = float(np.sum(r**2))
     dof = n - k
-    goodness = {
+    return {
         "chi2": chi2,
         "dof": dof,
         "chi2_red": chi2 / dof if dof > 0 else float("nan"),
@@ -244,17 +367,3 @@ def fit_samples(
         "bic": float(k * np.log(n) - 2 * ll),
         "n": n,
     }
-    result = FitResult(
-        model=model_name,
-        options=options,
-        channels=channels,
-        parameters=summarise(space, draws, x_map),
-        diagnostics=diagnostics,
-        goodness=goodness,
-        n_samples=int(lik.n),
-        wall_time_s=time.perf_counter() - t0,
-        extras=extras,
-    )
-    if out_dir is not None:
-        result.write(out_dir / f"fit-{model_name}.json")
-    return result

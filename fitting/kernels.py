@@ -45,6 +45,16 @@ __all__ = [
     "lobe_parameter_table",
     "lobe",
     "gauss_discrepancy_sum",
+    "dispatch",
+    "prefers_threads",
+    "logaddexp",
+    "smith_over_4cc",
+    "fresnel_value",
+    "exp_neg_scalar",
+    "stage_fresnel",
+    "stage_distribution",
+    "stage_shadowing",
+    "CHUNK",
 ]
 
 DIST_BECKMANN, DIST_GGX = 0, 1
@@ -131,6 +141,17 @@ def _dispatch(name, par_fn, ser_fn, work, *args):
     return result
 
 
+def dispatch(name, par_fn, ser_fn, work, *args):
+    """Public handle of the threading dispatcher, for the kernels of the other model modules
+    (:mod:`fitting.anisotropic`, :mod:`fitting.oren_nayar`, :mod:`fitting.multilobe`)."""
+    return _dispatch(name, par_fn, ser_fn, work, *args)
+
+
+def prefers_threads(name: str, work: int) -> bool:
+    """Whether a geometry pass should use threads (follows kernel ``name``'s timings)."""
+    return _prefers_threads(name, work)
+
+
 def _prefers_threads(name: str, work: int) -> bool:
     """Whether the geometry pass of a call should use threads (follows the kernel's choice)."""
     policy = _policy[0]
@@ -147,6 +168,7 @@ def _prefers_threads(name: str, work: int) -> bool:
 # Samples per parallel work item: long enough to amortise the scheduling, short enough to
 # balance two cores for W = 1.
 _CHUNK = 1024
+CHUNK = _CHUNK
 
 
 # exp(−x) for x ∈ [0, 745.2): Cody-Waite reduction x = k ln2 − r, |r| ≤ ln2/2, a degree-13
@@ -791,3 +813,20 @@ def gauss_discrepancy_sum(f, sig2, fm, s, ref):
     out = np.empty(fm.shape[0])
     _dispatch("gauss_disc", _gauss_disc_par, _gauss_disc_ser, fm.size, f, sig2, fm, s, ref, out)
     return out
+
+
+# -- public handles of the scalar building blocks (numba functions, callable from other njit
+# code): the other model modules reuse them rather than copying the formulas.
+logaddexp = _logaddexp
+#: Smith G₂/(4 cos θ_i cos θ_o) from (cos θ, m·sin θ) pairs: pass m = 1 and the *projected*
+#: u = sqrt((α_x x)² + (α_y y)²) of each direction for an anisotropic distribution (Heitz 2014
+#: §5.3: Λ depends on the roughness projected on the direction's azimuth).
+smith_over_4cc = _smith_over_4cc
+fresnel_value = _fresnel
+exp_neg_scalar = _exp_neg
+#: The Fresnel stage F(ω·h) for a chunk, reading ω·h from row 6 of a geometry table laid out as
+#: :func:`microfacet_geometry` (rows 0–8).
+stage_fresnel = _stage_f
+#: The D and G/(4 cos θ_i cos θ_o) stages of torrance-sparrow for a chunk (same table layout).
+stage_distribution = _stage_d
+stage_shadowing = _stage_g

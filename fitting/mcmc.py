@@ -1,6 +1,6 @@
 """emcee sampling with autocorrelation-based burn-in and stopping (issue 7 §4, DESIGN §7).
 
-* Moves: differential-evolution + snooker by default (see ``_named_moves``).
+* Moves: differential evolution by default (fitting.moves: why not emcee's snooker mix).
 * The ensemble starts in a small ball around the least-squares optimum (scaled by the LSQ
   standard errors when known), clipped inside the prior box; walkers with ln p = −∞ are
   redrawn closer to the optimum.
@@ -34,22 +34,32 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import emcee
 import numpy as np
+
+from fitting.moves import MOVES, named_moves
+from plumbing.errors import UserError
+from plumbing.progress import Progress
 
 __all__ = [
     "MOVES",
     "ChainFileError",
     "McmcResult",
     "run_mcmc",
+    "McmcOptions",
+    "ChainFile",
     "split_rhat",
     "rhat_across",
     "initial_ball",
+    "ConvergenceTarget",
+    "convergence_verdict",
+    "extend_chain",
 ]
 
 
-class ChainFileError(ValueError):
+class ChainFileError(UserError, ValueError):
     """A stored chain (``fit-<model>.h5``) cannot be read for a resume. One-line message.
 
     It is never overwritten in that case: a damaged file may still be someone's only copy of
@@ -71,6 +81,9 @@ class McmcResult:
     converged: bool
     stop_reason: str
     wall_time_s: float
+    #: Steps of a stored chain of *another* problem (fingerprint or shape differ) that this run
+    #: replaced in its chain file (0: none) — said so, never silently (issue 18).
+    replaced_steps: int = 0
 
     @property
     def flat(self) -> np.ndarray:
@@ -141,21 +154,6 @@ def initial_ball(
     return p
 
 
-MOVES = ("de", "stretch")
-
-
-def _named_moves(name: str):
-    """``de``: differential evolution 0.8 + DE snooker 0.2 (ter Braak & Vrugt 2008; the mix
-    in emcee's "moves" tutorial). On a 9-parameter Torrance-Sparrow posterior it gave τ ≈ 33
-    against ≈ 95 for the default stretch move (Goodman & Weare 2010), i.e. ~3× the ESS per
-    step. ``stretch``: emcee's default."""
-    if name == "de":
-        return [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
-    if name == "stretch":
-        return emcee.moves.StretchMove()
-    raise ValueError(f"moves {name!r}: use one of {', '.join(MOVES)}")
-
-
 def _chain_error(path, exc: BaseException) -> str:
     first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     return (
@@ -186,57 +184,58 @@ def _stored_fingerprint(backend) -> str | None:
     return None if value is None else str(value)
 
 
+@dataclass(frozen=True)
+class McmcOptions:
+    """How an ensemble runs: `walkers` (raised to ≥ 2D + 2, even), `max_steps`, a wall-time
+    budget, `target_ess` (stop once every ESS reaches it), the emcee `moves` (a name of
+    MOVES or a list), `vectorize` (log_prob takes all walkers at once), `chunk` steps between
+    convergence checks (grows with the chain)."""
+
+    walkers: int = 32
+    max_steps: int = 2000
+    time_budget_s: float | None = None
+    target_ess: float | None = None
+    moves: Any = "de"
+    vectorize: bool = True
+    chunk: int = 100
+
+
+@dataclass(frozen=True)
+class ChainFile:
+    """Where the chain is kept (emcee's HDF backend, group `name`) and the fingerprint of the
+    problem it samples: a stored chain is continued only for the same fingerprint."""
+
+    path: str | Path
+    name: str = "mcmc"
+    fingerprint: str | None = None
+
+
 def run_mcmc(
     log_prob: Callable[[np.ndarray], np.ndarray],
     x0: np.ndarray,
-    *,
     bounds: tuple[np.ndarray, np.ndarray],
-    walkers: int = 32,
-    max_steps: int = 2000,
-    time_budget_s: float | None = None,
+    options: McmcOptions | None = None,
+    *,
     rng: np.random.Generator | int | None = 0,
     scale: np.ndarray | None = None,
-    backend_path: str | Path | None = None,
-    backend_name: str = "mcmc",
-    fingerprint: str | None = None,
-    chunk: int = 100,
+    store: ChainFile | None = None,
     progress: bool = False,
-    vectorize: bool = True,
-    target_ess: float | None = None,
-    moves="de",
 ) -> McmcResult:
-    """Sample ``log_prob`` ((W, D) → (W,) when vectorised) with emcee; ``moves``: name or moves."""
+    """Sample ``log_prob`` ((W, D) → (W,) when vectorised) with emcee from a ball around
+    ``x0`` (initial_ball) until emcee's own criterion (chain > 50 τ, τ stable to 5 %), the
+    ESS target, the step budget or the time budget — whichever comes first."""
+    opt = options or McmcOptions()
     t0 = time.perf_counter()
     rng = np.random.default_rng(rng)
     x0 = np.asarray(x0, dtype=np.float64)
     ndim = x0.size
-    walkers = max(int(walkers), 2 * ndim + 2)
+    walkers = max(int(opt.walkers), 2 * ndim + 2)
     walkers += walkers % 2  # the stretch move splits the ensemble in two halves
-    backend = None
-    resume = False
-    if backend_path is not None:
-        _check_chain_file(Path(backend_path))
-        backend = emcee.backends.HDFBackend(str(backend_path), name=backend_name)
-        try:
-            resume = (
-                backend.initialized
-                and backend.shape == (walkers, ndim)
-                and backend.iteration > 0
-                and _stored_fingerprint(backend) == fingerprint
-            )
-        except (OSError, KeyError, ValueError, TypeError) as exc:
-            # KeyError/ValueError: an HDF5 file whose chain group is damaged.
-            raise ChainFileError(_chain_error(backend_path, exc)) from None
-        if not resume:
-            backend.reset(walkers, ndim)
-            if fingerprint is not None:
-                with backend.open("a") as fh:
-                    fh[backend_name].attrs["gonio_fingerprint"] = fingerprint
-    if isinstance(moves, str):
-        moves = _named_moves(moves)
-    fn = log_prob if vectorize else (lambda x: float(np.asarray(log_prob(x))))
+    backend, resume, replaced = _open_chain(store, walkers, ndim)
+    moves = named_moves(opt.moves) if isinstance(opt.moves, str) else opt.moves
+    fn = log_prob if opt.vectorize else (lambda x: float(np.asarray(log_prob(x))))
     sampler = emcee.EnsembleSampler(
-        walkers, ndim, fn, vectorize=vectorize, backend=backend, moves=moves
+        walkers, ndim, fn, vectorize=opt.vectorize, backend=backend, moves=moves
     )
     if resume:
         start = None  # emcee continues from the stored last sample and random state
@@ -245,57 +244,88 @@ def run_mcmc(
             rng.integers(0, 2**32 - 1, dtype=np.uint64)
         ).get_state()
         start = initial_ball(
-            log_prob if vectorize else np.vectorize(fn, signature="(d)->()"),
+            log_prob if opt.vectorize else np.vectorize(fn, signature="(d)->()"),
             x0,
             walkers,
             bounds,
             rng,
             scale,
         )
+    tau, stop_reason = _sample(sampler, start, opt, t0, progress)
+    res = _result(sampler, tau, stop_reason, t0)
+    res.replaced_steps = replaced
+    return res
 
-    bar = None
-    if progress:
-        from rich.progress import Progress
 
-        bar = Progress(transient=True)
-        bar.start()
-        task = bar.add_task("MCMC", total=max_steps, completed=sampler.iteration)
+def _open_chain(store: ChainFile | None, walkers: int, ndim: int):
+    """(emcee backend or None, whether it holds this problem's chain to continue, the steps of
+    another problem's chain that were reset)."""
+    if store is None:
+        return None, False, 0
+    _check_chain_file(Path(store.path))
+    backend = emcee.backends.HDFBackend(str(store.path), name=store.name)
+    try:
+        resume = (
+            backend.initialized
+            and backend.shape == (walkers, ndim)
+            and backend.iteration > 0
+            and _stored_fingerprint(backend) == store.fingerprint
+        )
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        # KeyError/ValueError: an HDF5 file whose chain group is damaged.
+        raise ChainFileError(_chain_error(store.path, exc)) from None
+    replaced = 0
+    if not resume:
+        try:
+            replaced = int(backend.iteration) if backend.initialized else 0
+        except (OSError, KeyError, ValueError, TypeError):
+            replaced = 0
+        backend.reset(walkers, ndim)
+        if store.fingerprint is not None:
+            with backend.open("a") as fh:
+                fh[store.name].attrs["gonio_fingerprint"] = store.fingerprint
+    return backend, resume, replaced
+
+
+def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool):
+    """Run in chunks until a stop rule holds; (τ, stop reason)."""
+    walkers = sampler.nwalkers
+    max_steps, chunk = opt.max_steps, opt.chunk
+    bar = Progress("MCMC", max_steps, completed=sampler.iteration, enabled=progress, transient=True)
     stop_reason = "max_steps"
-    converged = False
     tau_prev = None
-    tau = np.full(ndim, np.nan)
+    tau = np.full(sampler.ndim, np.nan)
     try:
         while sampler.iteration < max_steps:
             n = min(chunk, max_steps - sampler.iteration)
-            if start is not None:
-                sampler.run_mcmc(start, n, skip_initial_state_check=True)
-                start = None
-            else:
-                sampler.run_mcmc(None, n, skip_initial_state_check=True)
-            if bar is not None:
-                bar.update(task, completed=sampler.iteration)
+            sampler.run_mcmc(start, n, skip_initial_state_check=True)
+            start = None
+            bar.update(completed=sampler.iteration)
             tau = sampler.get_autocorr_time(tol=0)
             it = sampler.iteration
             stable = tau_prev is not None and np.all(np.abs(tau - tau_prev) < 0.05 * tau)
             if np.all(np.isfinite(tau)) and np.all(it > 50 * tau) and stable:
-                converged = True
                 stop_reason = "converged"
                 break
-            if target_ess is not None and np.all(np.isfinite(tau)):
+            if opt.target_ess is not None and np.all(np.isfinite(tau)):
                 burn_now = min(int(math.ceil(3 * np.max(tau))), it // 2)
-                if np.min((it - burn_now) * walkers / tau) >= target_ess:
+                if np.min((it - burn_now) * walkers / tau) >= opt.target_ess:
                     stop_reason = "target_ess"
                     break
             tau_prev = tau
             # Checked after a chunk so even a tiny budget yields a (short) chain.
-            if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
+            if opt.time_budget_s is not None and time.perf_counter() - t0 > opt.time_budget_s:
                 stop_reason = "time_budget"
                 break
             # Longer chunks as the chain grows keep the τ estimates' cost a small fraction.
             chunk = max(chunk, it // 4)
     finally:
-        if bar is not None:
-            bar.stop()
+        bar.close()
+    return tau, stop_reason
+
+
+def _result(sampler, tau, stop_reason: str, t0: float) -> McmcResult:
+    """The post-burn chain (burn = 3 τ_max, at most half) and its diagnostics."""
     it = sampler.iteration
     if not np.all(np.isfinite(tau)):
         tau = sampler.get_autocorr_time(tol=0)
@@ -303,7 +333,7 @@ def run_mcmc(
     burn = min(int(math.ceil(3 * tau_max)), it // 2)
     chain = sampler.get_chain(discard=burn)
     lp = sampler.get_log_prob(discard=burn)
-    ess = chain.shape[0] * walkers / tau
+    ess = chain.shape[0] * sampler.nwalkers / tau
     return McmcResult(
         chain=chain,
         log_prob=lp,
@@ -313,7 +343,120 @@ def run_mcmc(
         acceptance=float(np.mean(sampler.acceptance_fraction)),
         burn=burn,
         iterations=it,
-        converged=converged,
+        converged=stop_reason == "converged",
         stop_reason=stop_reason,
         wall_time_s=time.perf_counter() - t0,
+    )
+
+
+# -- a second stop rule: R̂ and ESS targets ------------------------------------------------------
+@dataclass(frozen=True)
+class ConvergenceTarget:
+    """Run on until every split R̂ < `rhat_max` and every ESS ≥ `ess_min` (Vehtari et al. 2021,
+    "Rank-normalization, folding, and localization: an improved R̂", Bayesian Analysis 16(2):
+    R̂ < 1.01 and ESS ≥ 400)."""
+
+    rhat_max: float = 1.01
+    ess_min: float = 400.0
+
+    def met(self, rhat, ess) -> bool:
+        rhat, ess = np.asarray(rhat, float), np.asarray(ess, float)
+        return bool(np.all(rhat < self.rhat_max) and np.all(ess >= self.ess_min))
+
+
+def convergence_verdict(
+    rhat: dict[str, float], ess: dict[str, float], target: ConvergenceTarget | None = None
+) -> dict:
+    """Worst R̂ and ESS over the parameters and whether `target` holds for every one (a NaN —
+    no chain — is not converged)."""
+    target = target or ConvergenceTarget()
+    if not rhat or not ess:
+        nan = float("nan")
+        return {
+            "rhat_max": nan,
+            "rhat_worst": "",
+            "ess_min": nan,
+            "ess_worst": "",
+            "converged": False,
+        }
+    r_name = max(rhat, key=lambda k: -math.inf if not math.isfinite(rhat[k]) else rhat[k])
+    if any(not math.isfinite(v) for v in rhat.values()):
+        r_name = next(k for k, v in rhat.items() if not math.isfinite(v))
+    e_name = min(ess, key=lambda k: math.inf if not math.isfinite(ess[k]) else ess[k])
+    if any(not math.isfinite(v) for v in ess.values()):
+        e_name = next(k for k, v in ess.items() if not math.isfinite(v))
+    ok = all(math.isfinite(v) and v < target.rhat_max for v in rhat.values()) and all(
+        math.isfinite(v) and v >= target.ess_min for v in ess.values()
+    )
+    return {
+        "rhat_max": float(rhat[r_name]),
+        "rhat_worst": r_name,
+        "ess_min": float(ess[e_name]),
+        "ess_worst": e_name,
+        "converged": bool(ok),
+    }
+
+
+def _diagnose(chain: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """τ (emcee, Sokal window), ESS = N W / τ and split R̂ of a chain (N, W, D)."""
+    tau = np.asarray(emcee.autocorr.integrated_time(chain, tol=0), dtype=np.float64)
+    return tau, chain.shape[0] * chain.shape[1] / tau, split_rhat(chain)
+
+
+def extend_chain(
+    res: McmcResult,
+    log_prob: Callable[[np.ndarray], np.ndarray],
+    target: ConvergenceTarget,
+    max_steps: int,
+    seed: int,
+) -> McmcResult | None:
+    """Continue an ensemble until `target` holds or `max_steps` steps in all; None when it
+    already holds (nothing appended).
+
+    Why: `run_mcmc` stops at emcee's own criterion, chain length > 50 τ. The split-walker R̂
+    then sits near √(1 + τ/n) with n ≈ 23 τ the half-chain length, i.e. ≈ 1.02: R̂ < 1.01 needs
+    ≈ 100 τ. The continuation starts from the ensemble's last state with the default
+    moves (DE, seeded from [seed, 10]), grows by half the current length per
+    round (R̂ − 1 falls like 1/length, so 2–3 rounds suffice), appends to the post-burn chain,
+    and recomputes τ, ESS and R̂ on the whole chain.
+    """
+    chain, lp = res.chain, res.log_prob
+    walkers, ndim = chain.shape[1], chain.shape[2]
+    it0 = int(res.iterations)
+    extra = 0
+    sampler = None
+    tau, ess, rhat = _diagnose(chain)
+    t0 = time.perf_counter()
+    while it0 + extra < max_steps and not target.met(rhat, ess):
+        if sampler is None:
+            sampler = emcee.EnsembleSampler(
+                walkers,
+                ndim,
+                log_prob,
+                vectorize=True,
+                moves=named_moves("de"),
+            )
+            state_seed = np.random.default_rng([seed, 10]).integers(0, 2**32 - 1)
+            sampler.random_state = np.random.RandomState(state_seed).get_state()
+            state = chain[-1]
+        n = int(min(max(200, chain.shape[0] // 2), max_steps - it0 - extra))
+        state = sampler.run_mcmc(state, n, skip_initial_state_check=True)
+        extra += n
+        chain = np.concatenate([res.chain, sampler.get_chain()])
+        lp = np.concatenate([res.log_prob, sampler.get_log_prob()])
+        tau, ess, rhat = _diagnose(chain)
+    if sampler is None:
+        return None
+    return McmcResult(
+        chain=chain,
+        log_prob=lp,
+        tau=tau,
+        ess=ess,
+        rhat=rhat,
+        acceptance=float(np.mean(sampler.acceptance_fraction)),
+        burn=res.burn,
+        iterations=it0 + extra,
+        converged=res.converged,
+        stop_reason=f"{res.stop_reason}+extended",
+        wall_time_s=res.wall_time_s + time.perf_counter() - t0,
     )

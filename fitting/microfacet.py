@@ -19,7 +19,7 @@ microfacet-based BRDFs", JCGT 3(2), 2014 (eqs. 72, 86, 99).
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import erfc
+from scipy.special import betainc, erfc, gammaln
 
 __all__ = [
     "tan2_theta",
@@ -33,6 +33,11 @@ __all__ = [
     "g1_over_cos",
     "g2_over_cos_cos",
     "v_cavity",
+    "anisotropic_d",
+    "student_t",
+    "smith_lambda_student_t",
+    "projected_roughness",
+    "rotate_tangent",
 ]
 
 _SQRT_PI = np.sqrt(np.pi)
@@ -121,11 +126,13 @@ def smith_g1_ggx(cos_theta, alpha) -> np.ndarray:
     return 2.0 * c / (c + np.sqrt(c * c + a2 * s2))
 
 
-def _c_lambda(cos_theta, sin_theta, m, distribution, rational):
+def _c_lambda(cos_theta, sin_theta, m, distribution, rational, gamma=None):
     """cos θ · Λ(θ), finite at the horizon (where Λ → ∞ but cos θ Λ → m sin θ/(2√π))."""
     c = np.asarray(cos_theta, dtype=np.float64)
     s = np.asarray(sin_theta, dtype=np.float64)
     m = np.asarray(m, dtype=np.float64)
+    if distribution == "student-t":
+        return _c_lambda_student_t(c, m * s, gamma)
     if distribution == "ggx":
         # (R − c)/2 with R = sqrt(c² + α²s²), written as α²s²/(2(R + c)): no cancellation
         q = np.sqrt(c * c + m * m * s * s) + c
@@ -144,16 +151,20 @@ def _c_lambda(cos_theta, sin_theta, m, distribution, rational):
     return np.where(np.isinf(a), 0.0, out)
 
 
-def g1_over_cos(cos_theta, sin_theta, m, distribution="beckmann", rational=False) -> np.ndarray:
+def g1_over_cos(
+    cos_theta, sin_theta, m, distribution="beckmann", rational=False, gamma=None
+) -> np.ndarray:
     """Smith G₁(ω)/cos θ, computed as 1/(cos θ + cos θ·Λ) so that it stays finite at θ = 90°.
 
-    ``distribution`` is "beckmann" or "ggx"; ``rational`` selects Walter's rational G₁ (Beckmann).
+    ``distribution`` is "beckmann", "ggx" or "student-t" (with ``gamma``); ``rational`` selects
+    Walter's rational G₁ (Beckmann). Only the product m·sin θ enters, so an anisotropic
+    distribution passes m = 1 and sin θ → :func:`projected_roughness` · sin θ.
     """
-    return 1.0 / (cos_theta + _c_lambda(cos_theta, sin_theta, m, distribution, rational))
+    return 1.0 / (cos_theta + _c_lambda(cos_theta, sin_theta, m, distribution, rational, gamma))
 
 
 def g2_over_cos_cos(
-    cos_i, sin_i, cos_o, sin_o, m, distribution="beckmann", kind="separable"
+    cos_i, sin_i, cos_o, sin_o, m, distribution="beckmann", kind="separable", gamma=None
 ) -> np.ndarray:
     """Smith G₂/(cos θ_i cos θ_o) for the separable or height-correlated form (Heitz 2014).
 
@@ -162,12 +173,12 @@ def g2_over_cos_cos(
     kind "rational" is the separable form with the rational Beckmann G₁.
     """
     if kind == "correlated":
-        li = _c_lambda(cos_i, sin_i, m, distribution, False)
-        lo = _c_lambda(cos_o, sin_o, m, distribution, False)
+        li = _c_lambda(cos_i, sin_i, m, distribution, False, gamma)
+        lo = _c_lambda(cos_o, sin_o, m, distribution, False, gamma)
         return 1.0 / (cos_i * cos_o + cos_o * li + cos_i * lo)
     rational = kind == "rational"
-    return g1_over_cos(cos_i, sin_i, m, distribution, rational) * g1_over_cos(
-        cos_o, sin_o, m, distribution, rational
+    return g1_over_cos(cos_i, sin_i, m, distribution, rational, gamma) * g1_over_cos(
+        cos_o, sin_o, m, distribution, rational, gamma
     )
 
 
@@ -177,3 +188,96 @@ def v_cavity(cos_h, cos_i, cos_o, v_dot_h) -> np.ndarray:
     Torrance & Sparrow 1967; Blinn 1977. Here v = ω_o, l = ω_i, v·h = l·h.
     """
     return np.minimum(1.0, np.minimum(2.0 * cos_h * cos_o / v_dot_h, 2.0 * cos_h * cos_i / v_dot_h))
+
+
+# -- anisotropic and heavy-tailed distributions ---------------------------------------------------
+
+
+def rotate_tangent(v: np.ndarray, phi0) -> tuple[np.ndarray, np.ndarray]:
+    """Tangential components (x', y') of vectors (..., 3) in the frame whose x' axis is the
+    sample-frame direction (cos φ₀, sin φ₀, 0):
+    x' = x cos φ₀ + y sin φ₀,  y' = −x sin φ₀ + y cos φ₀."""
+    v = np.asarray(v, dtype=np.float64)
+    c, s = np.cos(phi0), np.sin(phi0)
+    return v[..., 0] * c + v[..., 1] * s, -v[..., 0] * s + v[..., 1] * c
+
+
+def projected_roughness(xt, yt, alpha_x, alpha_y) -> np.ndarray:
+    """u = sqrt((α_x x')² + (α_y y')²) = α(φ) sin θ for a unit direction with tangent-frame
+    components (x', y'): the roughness projected on its azimuth, times sin θ (Heitz 2014,
+    eq. 80; Mitsuba's ``project_roughness_2``). Smith's Λ of an anisotropic distribution is the
+    isotropic one with m sin θ → u."""
+    return np.hypot(np.asarray(alpha_x) * xt, np.asarray(alpha_y) * yt)
+
+
+def anisotropic_d(sx, sy, sz, alpha_x, alpha_y, distribution="beckmann", gamma=None):
+    """Anisotropic D(h), sr⁻¹, from the tangent-frame components of any positive multiple s of
+    the half vector (s = ω_i + ω_o; h = s/|s|), with q = (s_x²/α_x² + s_y²/α_y²)/s_z² and
+    cos⁻⁴θ_h = (1 + (s_x² + s_y²)/s_z²)²:
+
+    beckmann   D = exp(−q) / (π α_x α_y cos⁴θ_h)            (Walter et al. 2007 eq. 25 with
+                                                              α_x ≠ α_y; Heitz 2014 eq. 82)
+    ggx        D = 1 / (π α_x α_y cos⁴θ_h (1 + q)²)          (Heitz 2014, eq. 85)
+    student-t  D = 1 / (π α_x α_y cos⁴θ_h (1 + q/(γ−1))^γ)   (Ribardière et al. 2017, eq. 6)
+
+    Each satisfies ∫ D cos θ_h dω_h = 1. Student-t interpolates GGX (γ = 2) and Beckmann
+    (γ → ∞); its tail falls as tan^(−2γ)θ_h (GGX: tan⁻⁴).
+    """
+    sx, sy, sz = (np.asarray(a, dtype=np.float64) for a in (sx, sy, sz))
+    ax, ay = np.asarray(alpha_x, dtype=np.float64), np.asarray(alpha_y, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        t2 = (sx * sx + sy * sy) / (sz * sz)
+        q = ((sx / ax) ** 2 + (sy / ay) ** 2) / (sz * sz)
+        inv_c4 = (1.0 + t2) ** 2
+        norm = 1.0 / (np.pi * ax * ay)
+        if distribution == "beckmann":
+            e = np.exp(-q)
+            return np.where(e > 0.0, e * inv_c4 * norm, 0.0)
+        if distribution == "ggx":
+            r = (1.0 + t2) / (1.0 + q)
+            return np.where(np.isfinite(r), r * r * norm, norm * np.square(ax * ay) / ax**2)
+        g = np.asarray(gamma, dtype=np.float64)
+        return inv_c4 * norm * np.exp(-g * np.log1p(q / (g - 1.0)))
+
+
+def student_t(tan2_beta, alpha, gamma) -> np.ndarray:
+    """Isotropic Student-t ("STD") D = 1/(π α² cos⁴β (1 + tan²β/((γ−1)α²))^γ), sr⁻¹
+    (Ribardière, Bringier, Meneveaux, Simonot, CGF 36(2), 2017, eq. 6). γ > 1.5."""
+    t2 = np.asarray(tan2_beta, dtype=np.float64)
+    a2 = np.asarray(alpha, dtype=np.float64) ** 2
+    g = np.asarray(gamma, dtype=np.float64)
+    return (1.0 + t2) ** 2 / (np.pi * a2) * np.exp(-g * np.log1p(t2 / ((g - 1.0) * a2)))
+
+
+def smith_lambda_student_t(mu, gamma) -> np.ndarray:
+    """Exact Smith Λ of the Student-t distribution, μ = cot θ/α (γ > 3/2).
+
+    Derived here from Smith's Λ(μ) = (1/μ)∫_μ^∞ (q − μ) P₂(q) dq (Heitz 2014, eq. 72) with the
+    1-D slope marginal P₂(q) = K (1 + q²/ν)^(½−γ), ν = γ − 1, K = √(ν/π) Γ(γ−½)/Γ(γ) (a
+    Student-t with 2ν degrees of freedom scaled by 1/√2):
+
+        Λ = K ν (1 + μ²/ν)^(3/2−γ) / ((2γ − 3) μ)  −  ½ I_{ν/(ν+μ²)}(ν, ½)
+
+    with I the regularised incomplete beta function. γ = 2 gives GGX's (√(1 + 1/μ²) − 1)/2
+    exactly. (Ribardière et al. publish a rational fit of the second term; this is exact.)
+    """
+    mu = np.asarray(mu, dtype=np.float64)
+    g = np.asarray(gamma, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = _c_lambda_student_t(mu, np.ones_like(mu), g) / mu
+    return np.where(np.isinf(mu), 0.0, lam)
+
+
+def _c_lambda_student_t(c, u, gamma):
+    """cos θ · Λ with μ = c/u, written so that c → 0 stays finite: u·I₁ − c·I₀ (see above)."""
+    c = np.asarray(c, dtype=np.float64)
+    u = np.asarray(u, dtype=np.float64)
+    g = np.asarray(gamma, dtype=np.float64)
+    nu = g - 1.0
+    log_k = 0.5 * np.log(nu / np.pi) + gammaln(g - 0.5) - gammaln(g)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        mu2 = (c / u) ** 2
+        first = u * np.exp(log_k + (1.5 - g) * np.log1p(mu2 / nu)) * nu / (2.0 * g - 3.0)
+        second = 0.5 * c * betainc(nu, 0.5, nu / (nu + mu2))
+        out = first - second
+    return np.where(u > 0.0, np.maximum(out, 0.0), 0.0)

@@ -1,6 +1,9 @@
 """BRDF models: the seed lecture's Lambert, Phong and Torrance-Sparrow, then beyond (DESIGN §5).
 
-Registry: ``get(name, **options) -> Model`` and ``names()``. Every model returns f_r in sr⁻¹
+Registry: ``get(name, **options) -> Model`` and ``names()`` dispatch to :mod:`fitting.registry`,
+where every model (these and those of :mod:`fitting.anisotropic`, :mod:`fitting.oren_nayar`,
+:mod:`fitting.multilobe`) is registered once with its options, aliases and reference. Every
+model returns f_r in sr⁻¹
 (never f_r·cos θ_o), zero below the horizon (cos θ_i ≤ 0 or cos θ_o ≤ 0), for direction pairs
 ``wi``, ``wo`` of shape (N, 3) (unit vectors in the sample frame, both pointing away from the
 surface). Parameters are passed by name; scalars give shape (N,), arrays of shape (W, 1) give
@@ -57,7 +60,6 @@ __all__ = [
     "TorranceSparrow",
     "get",
     "names",
-    "MODEL_NAMES",
 ]
 
 
@@ -166,6 +168,21 @@ def _as_2d(v: np.ndarray, rows: int, n: int) -> np.ndarray:
         v = v[None, :]
     cols = 1 if v.shape[1] == 1 else n
     return np.ascontiguousarray(np.broadcast_to(v, (rows, cols)), dtype=np.float64)
+
+
+def _flat_parameters(cols: Mapping, out: np.ndarray) -> tuple[dict[str, np.ndarray], bool]:
+    """Parameter columns ((rows, 1), (rows, N) or scalars) → 1-D per-row arrays for a kernel's
+    parameter table: one row per set if no column varies per sample, else one row per
+    (set, sample), row w·N + j (second value True)."""
+    rows, n = out.shape
+    cols = {
+        k: (_as_2d(np.asarray(c, dtype=np.float64), rows, n) if np.ndim(c) < 2 else c)
+        for k, c in cols.items()
+    }
+    if any(c.shape[1] != 1 for c in cols.values()):
+        flat = {k: np.broadcast_to(c, out.shape).ravel() for k, c in cols.items()}
+        return {k: np.ascontiguousarray(v) for k, v in flat.items()}, True
+    return {k: np.ascontiguousarray(c[:, 0]) for k, c in cols.items()}, False
 
 
 def _parallel_geometry(out: np.ndarray, kernel: str) -> bool:
@@ -411,20 +428,16 @@ class TorranceSparrow(Model):
         return np.where(above, f, 0.0)
 
 
-MODEL_NAMES = ("lambert", "phong", "phong-normalized", "blinn-phong", "torrance-sparrow")
-
-
 def names() -> list[str]:
-    """Registered model names."""
-    return list(MODEL_NAMES)
+    """Registered model names, variants included (:func:`fitting.registry.names`)."""
+    from fitting import registry
+
+    return registry.names()
 
 
 def get(name: str, **options) -> Model:
-    """A model by name, e.g. ``get("torrance-sparrow", distribution="ggx", fresnel="schlick")``."""
-    if name == "lambert":
-        return Lambert(**options)
-    if name in _LOBES:
-        return PhongFamily(name, **options)
-    if name == "torrance-sparrow":
-        return TorranceSparrow(**options)
-    raise KeyError(f"unknown model {name!r}; known: {', '.join(names())}")
+    """A model by name, variant or alias, e.g. ``get("torrance-sparrow", distribution="ggx")``
+    (:func:`fitting.registry.get`: unknown names or options raise with the allowed ones)."""
+    from fitting import registry
+
+    return registry.get(name, **options)

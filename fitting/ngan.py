@@ -2,7 +2,7 @@
 
 Ngan, A., Durand, F., Matusik, W. "Experimental Analysis of BRDF Models", EGSR 2005. The fitted
 parameters are read from the ``ngan_<model>.fit`` tables distributed with the BRDF benchmark
-*bbm* (bsdfbenchmark/bbm, ``fits/``; see shared/data/SOURCES.md for provenance). Each line is
+*bbm* (bsdfbenchmark/bbm, ``fits/``; see data/README.md for provenance). Each line is
 
     <material> = Aggregate(Lambertian(albedo = [r, g, b]), Ngan<Model>(key = value, ...))
 
@@ -114,30 +114,22 @@ def read_ngan_fits(path: str | os.PathLike) -> dict[str, dict[str, Value]]:
     return fits
 
 
-def _shared_data_candidates() -> list[Path]:
-    here = Path(__file__).resolve().parent
-    out = []
-    if os.environ.get("GONIO_SHARED_DATA"):
-        out.append(Path(os.environ["GONIO_SHARED_DATA"]))
-    out += [p / "shared" / "data" for p in here.parents]
-    out.append(Path("/work/shared/data"))
-    return out
-
-
 def ngan_fits_path(model: str = "cooktorrance", data_dir: str | os.PathLike | None = None) -> Path:
     """The ``ngan_<model>.fit`` file: in ``data_dir`` (a folder holding it or ``brdf_fits/``),
-    else in $GONIO_SHARED_DATA/brdf_fits, a ``shared/data/brdf_fits`` beside the checkout, or
-    /work/shared/data/brdf_fits."""
+    else ``brdf_fits/`` found by the data resolver (fitting.data_paths: $GONIO_DATA, the
+    repository's data/, an installed wheel's share/gonio/data)."""
+    from fitting.data_paths import find_data
+
     if model not in NGAN_MODELS:
         raise ValueError(f"unknown Ngan model {model!r}; choose one of {', '.join(NGAN_MODELS)}")
     name = f"ngan_{model}.fit"
-    dirs = [Path(data_dir)] if data_dir is not None else _shared_data_candidates()
+    if data_dir is None:
+        return find_data(f"brdf_fits/{name}")
     tried = []
-    for d in dirs:
-        for c in (d / name, d / "brdf_fits" / name):
-            tried.append(str(c))
-            if c.is_file():
-                return c
+    for c in (Path(data_dir) / name, Path(data_dir) / "brdf_fits" / name):
+        tried.append(str(c))
+        if c.is_file():
+            return c
     raise FileNotFoundError(f"{name} not found (looked in {', '.join(tried)})")
 
 

@@ -22,14 +22,14 @@ from __future__ import annotations
 
 import math
 import os
-import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
-from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, ValidationError
+
+from plumbing.config import ConfigError, Strict, load_model
+from plumbing.errors import UserError
 
 __all__ = [
     "DISCREPANCY",
@@ -49,41 +49,31 @@ DISCREPANCY = ("discrepancy", 1e-4, 1.0)
 FRESNEL_PARAMETERS = frozenset({"ior", "eta", "k", "f0", "F0", "eta_k"})
 
 
-class PriorsError(ValueError):
+class PriorsError(UserError, ValueError):
     """A priors file or prior declaration is invalid. The message is one line."""
 
 
-class PriorBound(BaseModel):
+class PriorBound(Strict):
     """Bounds override for one parameter (natural units)."""
 
-    model_config = ConfigDict(extra="forbid")
     lower: float | None = None
     upper: float | None = None
 
 
-class PriorsConfig(BaseModel):
+class PriorsConfig(Strict):
     """Contents of a priors TOML file."""
 
-    model_config = ConfigDict(extra="forbid")
     energy_conservation: bool = False
     parameters: dict[str, PriorBound] = {}
 
 
 def load_priors(path: str | os.PathLike) -> PriorsConfig:
-    """Read a priors TOML file; raises PriorsError with a one-line reason."""
-    path = Path(path)
+    """Read a priors file (TOML or JSON: data only); raises PriorsError with a one-line reason
+    naming the file, the key and what is allowed (plumbing.config)."""
     try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise PriorsError(f"{path}: no such priors file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise PriorsError(f"{path}: not valid TOML ({exc})") from None
-    try:
-        return PriorsConfig.model_validate(data)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(x) for x in first["loc"])
-        raise PriorsError(f"{path}: {where}: {first['msg']}") from None
+        return load_model(path, PriorsConfig, PriorsError)
+    except ConfigError as exc:  # missing, unreadable or not TOML: the same line, as PriorsError
+        raise PriorsError(str(exc)) from None
 
 
 @dataclass(frozen=True)
@@ -104,6 +94,19 @@ class ParameterSpec:
         if self.log:
             return math.log(self.lower), math.log(self.upper)
         return self.lower, self.upper
+
+
+def _fixed_value(key: str, raw, lower: float, upper: float, what: str) -> float:
+    """A --fix value: finite and inside [lower, upper], the parameter's own range (the model
+    is undefined or unphysical outside it, and an export or report would carry the value on).
+    `what` names the range in the message."""
+    try:
+        value = float(raw)
+    except (TypeError, ValueError):
+        raise PriorsError(f"--fix {key}={raw!r}: not a number") from None
+    if not (math.isfinite(value) and lower <= value <= upper):
+        raise PriorsError(f"--fix {key}={raw}: outside {what} [{lower:g}, {upper:g}]")
+    return value
 
 
 @dataclass
@@ -164,7 +167,9 @@ class ParameterSpace:
                         lower = lower if b.lower is None else float(b.lower)
                         upper = upper if b.upper is None else float(b.upper)
                 if key_fixed := next((k for k in (fitted, p.name) if k in fix), None):
-                    fixed[fitted] = float(fix[key_fixed])
+                    fixed[fitted] = _fixed_value(
+                        key_fixed, fix[key_fixed], p.lower, p.upper, f"{p.name}'s range"
+                    )
                     continue
                 if not lower < upper:
                     raise PriorsError(f"prior for {fitted}: lower {lower} must be below {upper}")
@@ -176,7 +181,8 @@ class ParameterSpace:
         if discrepancy:
             name, lo, hi = DISCREPANCY
             if name in fix:
-                fixed[name] = float(fix[name])
+                # 0 (no model error) is allowed although the sampled prior starts at lo > 0.
+                fixed[name] = _fixed_value(name, fix[name], 0.0, hi, "the discrepancy's range")
             else:
                 specs.append(ParameterSpec(name, name, None, "1", lo, hi, True))
             known.add(name)

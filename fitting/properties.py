@@ -128,27 +128,22 @@ def check_finite(model, params, n: int = 2000, rng=0) -> bool:
     return bool(np.all(np.isfinite(f)) and np.all(f >= 0) and not np.any(np.isnan(lf)))
 
 
-# Parameter sets that stress each property: a lobe with all the weight (kd = 0, ks = 1) and
-# F ≡ 1 where the model allows it, so the albedo measures the lobe's normalisation itself.
-_TABLE_CASES: list[tuple[str, dict, list[dict]]] = [
-    ("lambert", {}, [{"kd": 1.0}]),
-    ("phong", {}, [{"kd": 0.0, "ks": 1.0, "n": n} for n in (1.0, 10.0, 100.0)]),
-    ("phong-normalized", {}, [{"kd": 0.0, "ks": 1.0, "n": n} for n in (1.0, 10.0, 1e3)]),
-    ("blinn-phong", {}, [{"kd": 0.0, "ks": 1.0, "n": n} for n in (1.0, 10.0, 1e3)]),
-]
-for _d in ("beckmann", "ggx"):
-    for _s in ("v-cavity", "smith", "smith-rational", "smith-correlated"):
-        _TABLE_CASES.append(
-            (
-                "torrance-sparrow",
-                {"distribution": _d, "shadowing": _s, "fresnel": "none"},
-                [{"kd": 0.0, "ks": 1.0, "m": m} for m in (0.1, 0.5, 1.0)],
-            )
-        )
+def _table_cases(names=None):
+    """(name, options, parameter sets) of every registered model's ``checks``: lobes with all the
+    weight (kd = 0, ks = 1) and F ≡ 1 where the model allows, so the albedo measures the lobe's
+    normalisation itself (:mod:`fitting.catalogue`)."""
+    from fitting import registry
+
+    out = []
+    for name in names if names is not None else registry.names():
+        for options, cases in registry.entry(name).checks:
+            out.append((name, dict(options), [dict(c) for c in cases]))
+    return out
 
 
-def property_table(n: int = 64, tolerance: float = 2e-3) -> list[dict]:
-    """Measured properties of every model (for ``gonio models --check``).
+def property_table(n: int = 64, tolerance: float = 2e-3, names=None) -> list[dict]:
+    """Measured properties of every registered model (for ``gonio models --check``), or of
+    ``names`` only.
 
     One row per (model, options): ``reciprocal`` (max relative error ≤ 1e-12), ``isotropic``
     (≤ 1e-9: rotating the vectors perturbs them by rounding, which a narrow lobe amplifies),
@@ -157,7 +152,7 @@ def property_table(n: int = 64, tolerance: float = 2e-3) -> list[dict]:
     parameter sets used, and the model's declared flags for comparison.
     """
     rows = []
-    for name, options, cases in _TABLE_CASES:
+    for name, options, cases in _table_cases(names):
         model = _models.get(name, **options)
         recip = max(check_reciprocity(model, p, n=500) for p in cases)
         iso = max(check_isotropy(model, p, n=500) for p in cases)

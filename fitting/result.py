@@ -4,10 +4,19 @@
 
     {"schema_version", "model", "options", "channels",
      "parameters": {NAME: {"unit", "map", "median", "p16", "p84", "p2.5", "p97.5"}},
-     "diagnostics": {"tau": {NAME: …}, "ess": {NAME: …}, "acceptance", "converged",
+     "diagnostics": {"tau": {NAME: …}, "ess": {NAME: …}, "acceptance", "converged", "budget",
                      "rhat": {NAME: …}, "stop_reason"},
      "goodness": {"chi2", "dof", "chi2_red", "aic", "bic", "n"},
-     "n_samples", "wall_time_s"}
+     "n_samples", "wall_time_s",
+     "fixed": {NAME: value},        (optional: parameters held fixed with --fix)
+     "verdicts": [{"name", "status", "reason", "advice"}, …]}   (optional, issue 18)
+
+``diagnostics`` also holds, in fits written since issue 18, ``converged_because`` (one line:
+the criteria met, or "not converged: " and those that failed) and ``failed_criteria`` (their
+names: "rhat", "ess", "length", "stuck", "lost", "mcmc"); ``converged`` is then true exactly
+when every criterion of fitting.verdicts.mcmc_verdict holds. ``verdicts`` (fitting.verdicts):
+status "ok" | "warning" | "fail", a one-line reason, a one-line advice ("" when ok). Files
+without these keys (older fits) are read as before.
 
 Values are natural units (not the log used for sampling). Non-finite numbers are written as
 null (JSON has no NaN).
@@ -21,13 +30,15 @@ import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from fitting.atomic import atomic_write_bytes
+from plumbing.atomic import atomic_write_bytes
+from plumbing.errors import UserError
 
 __all__ = [
     "FIT_SCHEMA_VERSION",
     "PARAMETER_KEYS",
     "DIAGNOSTIC_KEYS",
     "GOODNESS_KEYS",
+    "VERDICT_KEYS",
     "TOP_KEYS",
     "FitResult",
     "FitResultError",
@@ -49,9 +60,10 @@ TOP_KEYS = (
 PARAMETER_KEYS = ("unit", "map", "median", "p16", "p84", "p2.5", "p97.5")
 DIAGNOSTIC_KEYS = ("tau", "ess", "acceptance", "converged", "rhat", "stop_reason")
 GOODNESS_KEYS = ("chi2", "dof", "chi2_red", "aic", "bic", "n")
+VERDICT_KEYS = frozenset({"name", "status", "reason", "advice"})
 
 
-class FitResultError(ValueError):
+class FitResultError(UserError, ValueError):
     """A fit result file is missing or malformed. The message is one line."""
 
 
@@ -79,21 +91,63 @@ class FitResult:
     n_samples: int
     wall_time_s: float
     schema_version: int = FIT_SCHEMA_VERSION
+    #: Parameters held fixed (natural units, fitted names such as ``eta`` or ``kd_R``): not in
+    #: ``parameters`` but needed to evaluate or export the model.
+    fixed: dict[str, float] = field(default_factory=dict)
+    #: The fit's verdicts (fitting.verdicts), None for a file written before they existed.
+    verdicts: list[dict] | None = None
     # Not serialised: in-memory extras for callers (chain, LSQ result, likelihood).
     extras: dict = field(default_factory=dict, repr=False, compare=False)
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d.pop("extras")
-        return _clean({k: d[k] for k in TOP_KEYS})
+        out = {k: d[k] for k in TOP_KEYS}
+        if self.fixed:
+            out["fixed"] = {str(k): float(v) for k, v in self.fixed.items()}
+        if self.verdicts is not None:
+            out["verdicts"] = [dict(v) for v in self.verdicts]
+        return _clean(out)
 
     def value(self, name: str, key: str = "median") -> float:
         return float(self.parameters[name][key])
 
+    def predict(self, wi, wo, channels=None, *, x=None, estimate: str = "map"):  # noqa: ANN001
+        """f̂ (N, C) in sr⁻¹ of the fitted model at direction pairs `wi`, `wo` (N, 3), per
+        channel (default: the fitted ones): at the `estimate` of every parameter ("map",
+        "median", ...; fixed parameters at their values), or at `x`, a point of the fit's
+        sampled space (e.g. the least-squares optimum; needs the in-memory fit)."""
+        import numpy as np
+
+        from fitting import models
+
+        model = models.get(self.model, **dict(self.options))
+        channels = list(channels or self.channels)
+        space = self.extras.get("space")
+        if space is not None and (x is not None or estimate == "map"):
+            if x is None:
+                x = space.to_internal(np.array([self.parameters[n]["map"] for n in space.names]))
+            nat = space.natural_dict(np.asarray(x)[None, :])
+            per = [
+                {k: v[0, 0] for k, v in space.channel_params(nat, ch).items()} for ch in channels
+            ]
+        elif x is not None:
+            raise ValueError("predict(x=...) needs the fit's parameter space (an in-memory fit)")
+        else:
+            values = {n: float(p[estimate]) for n, p in self.parameters.items()}
+            values.update({str(k): float(v) for k, v in self.fixed.items()})
+            names = model.parameter_names
+            per = [
+                {n: values[f"{n}_{ch}"] if f"{n}_{ch}" in values else values[n] for n in names}
+                for ch in channels
+            ]
+        cols = [np.asarray(model.evaluate(p, wi, wo)) for p in per]
+        return np.stack(cols, axis=-1)
+
     def write(self, path: str | os.PathLike) -> Path:
         """Write atomically: temp file in the same directory, fsync, rename."""
         text = json.dumps(self.to_dict(), indent=2, allow_nan=False) + "\n"
-        return atomic_write_bytes(path, text.encode())
+        return atomic_write_bytes(path, text.encode(), overwrite=True)
 
 
 def read_fit(path: str | os.PathLike) -> FitResult:
@@ -136,4 +190,18 @@ def read_fit(path: str | os.PathLike) -> FitResult:
             raise FitResultError(f"{path}: {key}: expected a JSON object; refit to rewrite it")
     if not isinstance(d["channels"], list):
         raise FitResultError(f"{path}: channels: expected a list; refit to rewrite it")
-    return FitResult(**{k: d[k] for k in TOP_KEYS})
+    fixed = d.get("fixed", {})
+    if not isinstance(fixed, dict) or not all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in fixed.values()
+    ):
+        raise FitResultError(f"{path}: fixed: expected {{NAME: number}}; refit to rewrite it")
+    verdicts = d.get("verdicts")
+    if verdicts is not None and (
+        not isinstance(verdicts, list)
+        or not all(isinstance(v, dict) and VERDICT_KEYS <= set(v) for v in verdicts)
+    ):
+        raise FitResultError(
+            f"{path}: verdicts: expected a list of {{{', '.join(sorted(VERDICT_KEYS))}}}; "
+            "refit to rewrite it"
+        )
+    return FitResult(**{k: d[k] for k in TOP_KEYS}, fixed=dict(fixed), verdicts=verdicts)

@@ -1,6 +1,10 @@
 """The BRDF sample table (DESIGN §4): `samples.parquet`, the contract between calibration and
 fitting. A table with only the required columns is valid input, so samples measured by other
 instruments can be fitted too.
+
+Optional column `texel` (int32, issue 20): per-texel samples of a spatially varying sample, the
+texel index iy·n + ix on the sample plane (calibration.texels), with the grid in the metadata key
+``gonio.texels`` (JSON: texel_mm, n_x, n_y, size_m). Tables without it are one material.
 """
 
 from __future__ import annotations
@@ -12,10 +16,12 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from fitting.atomic import atomic_write_with
 from fitting.directions import spherical_to_vector
+from plumbing.atomic import atomic_write_with
+from plumbing.errors import UserError
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -42,8 +48,12 @@ OPTIONAL_COLUMNS: dict[str, pa.DataType] = {
     "pixel_x": pa.int32(),
     "pixel_y": pa.int32(),
     "flags": pa.int32(),
+    # Per-texel samples (calibration.texels): the index iy·n + ix of the texel of the sample
+    # plane the sample's surface point falls in; the grid is in metadata key "gonio.texels".
+    "texel": pa.int32(),
 }
 CHANNELS = ("R", "G", "B", "Y")
+_FORMAT_NAMES = {"rgl": "an RGL tensor", "merl": "a MERL .binary", "csv": "a delimited text"}
 
 
 class Flags:
@@ -53,9 +63,11 @@ class Flags:
     DARK = 2
     BELOW_HORIZON = 4
     MASKED = 8
+    #: A published value below zero (e.g. out-of-gamut RGB in an RGL file), kept for the record.
+    NEGATIVE = 16
 
 
-class SamplesError(ValueError):
+class SamplesError(UserError, ValueError):
     """A samples file is missing, unreadable, or not a samples table. The message is one line."""
 
 
@@ -151,12 +163,56 @@ def write_samples(path: str | os.PathLike, table: SampleTable) -> Path:
     arrow = pa.table(cols).replace_schema_metadata(
         {k.encode(): v.encode() for k, v in meta.items()}
     )
-    atomic_write_with(path, lambda fh: pq.write_table(arrow, fh))
+    atomic_write_with(path, lambda fh: pq.write_table(arrow, fh), overwrite=True)
     return path
 
 
-def read_samples(path: str | os.PathLike) -> SampleTable:
-    """Read and validate a samples table. Raises SamplesError with a one-line reason."""
+def _flags_column(arrow, path) -> np.ndarray:
+    """The flags as int32 bit sets, refusing what a cast would silently turn into 0 (= good):
+    nulls, NaN, fractions, negatives and values beyond 31 bits (2³² became 0 before)."""
+    column = arrow.column("flags")
+    if column.null_count:
+        first = int(np.flatnonzero(np.asarray(column.is_null()))[0])
+        raise SamplesError(f"{path}: column 'flags': row {first} is null; flags are bit sets")
+    try:
+        values = np.asarray(column.to_numpy(zero_copy_only=False), dtype=np.float64)
+    except (TypeError, ValueError, pa.ArrowInvalid):
+        raise SamplesError(f"{path}: column 'flags' is not numeric") from None
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(values) | (values != np.round(values)) | (values < 0)
+        bad |= values >= 2**31
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise SamplesError(
+            f"{path}: column 'flags': row {first} holds {values[first]:g}; flags are bit sets, "
+            "whole numbers from 0 (good) to 2^31 - 1"
+        )
+    return values.astype(np.int32)
+
+
+def _channel_column(arrow, path) -> np.ndarray:
+    """Channel names as str, refusing a null or empty name (before, a null became "None" and
+    was fitted as a channel of that name) and a column that is not text."""
+    column = arrow.column("channel")
+    if pa.types.is_dictionary(column.type):
+        column = column.cast(pa.string())
+    if not (pa.types.is_string(column.type) or pa.types.is_large_string(column.type)):
+        raise SamplesError(f"{path}: column 'channel' is {column.type}, not text (R, G, B, ...)")
+    missing = np.asarray(pc.fill_null(pc.equal(pc.utf8_length(column), 0), True))
+    if missing.any():
+        raise SamplesError(
+            f"{path}: column 'channel': row {int(np.flatnonzero(missing)[0])} has no channel "
+            "name (null or empty); every row needs one (R, G, B, or a band name)"
+        )
+    return np.asarray(column.to_numpy(zero_copy_only=False), dtype=object).astype(str)
+
+
+def read_samples(path: str | os.PathLike, *, merge_duplicates: bool = False) -> SampleTable:
+    """Read and validate a samples table. Raises SamplesError with a one-line reason.
+
+    Every table passes the unit and range guards of :mod:`fitting.formats.guards` (degrees,
+    below-horizon rows, σ ≤ 0, unflagged f < 0, duplicated rows — the latter merged instead
+    when ``merge_duplicates``)."""
     path = Path(path)
     if not path.exists():
         raise SamplesError(f"{path}: no such file")
@@ -165,9 +221,19 @@ def read_samples(path: str | os.PathLike) -> SampleTable:
     try:
         arrow = pq.read_table(path)
     except Exception as exc:  # pyarrow raises several types for a non-Parquet file
+        from fitting.formats import sniff_format
+
+        fmt = sniff_format(path)
+        if fmt is not None:  # a format gonio can import: say how
+            raise SamplesError(
+                f"{path}: looks like {_FORMAT_NAMES[fmt]} file, not a Parquet samples table; "
+                f"convert it with `gonio import {fmt} {path} --out SAMPLES.parquet` (samples of a "
+                "run: `gonio calibrate RUN`)"
+            ) from None
         raise SamplesError(
             f"{path}: not a Parquet samples table ({type(exc).__name__}: damaged or another "
-            "format); re-create it with `gonio calibrate RUN` or write it with pyarrow"
+            "format); re-create it with `gonio calibrate RUN`, convert it with `gonio import`, "
+            "or write it with pyarrow"
         ) from None
     missing = [c for c in REQUIRED_COLUMNS if c not in arrow.column_names]
     if missing:
@@ -201,7 +267,7 @@ def read_samples(path: str | os.PathLike) -> SampleTable:
     if not finite.any():
         raise SamplesError(f"{path}: no row has finite angles, f and sigma (all NaN or inf)")
     flags = (
-        col("flags", np.int64).astype(np.int32)
+        _flags_column(arrow, path)
         if "flags" in arrow.column_names
         else np.zeros(arrow.num_rows, np.int32)
     )
@@ -222,10 +288,13 @@ def read_samples(path: str | os.PathLike) -> SampleTable:
         )
     extra = {
         name: col(name, np.int64)
-        for name in ("capture_id", "pixel_x", "pixel_y")
+        for name in ("capture_id", "pixel_x", "pixel_y", "texel")
         if name in arrow.column_names
     }
-    channel = np.asarray(arrow.column("channel").to_pylist(), dtype=object).astype(str)
-    return SampleTable(
+    channel = _channel_column(arrow, path)
+    table = SampleTable(
         channel=channel, f=f, sigma=sigma, flags=flags, extra=extra, metadata=meta, **angles
     )
+    from fitting.formats.guards import check_samples  # here: guards import this module
+
+    return check_samples(table, str(path), merge_duplicates_rows=merge_duplicates)

@@ -9,46 +9,53 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import tomli_w
-from pydantic import ValidationError
 from rich.console import Console
 
+from acquisition.calibration_capture import check_calibration_plan
 from acquisition.config import (
     PlanConfig,
     RigConfig,
-    format_validation_error,
     load_plan,
     load_rig,
 )
-from acquisition.exposure import exposure_ladder
+from acquisition.operator import AutoOperator, ConsoleOperator, Operator
 from acquisition.plans import build_plan, lab_time_estimate
 from acquisition.protocols import Frame
 from acquisition.rig import build_rig
+from acquisition.run_document import RunDocument, device_difference
 from acquisition.runner import RunOutcome, fmt_duration, run_acquisition, stop_requests
 from acquisition.store import RunStore
-from fitting.atomic import atomic_write_bytes
 from gonio.backends import prepare_backends
 from gonio.errors import UserError
+from gonio.plain_text import printable
+from plumbing.atomic import atomic_write_bytes
+from plumbing.locks import RunLock
 
 __all__ = [
     "acquire",
+    "AcquireSpec",
+    "capture_calibration",
     "AcquireResult",
     "config_dir",
-    "Timings",
     "demo",
+    "demo_fit_options",
+    "demo_fit_choice",
+    "SpineSpec",
+    "SpineResult",
+    "run_spine",
     "sample_levels_decoder",
-    "plan_exposures_s",
 ]
 
-console = Console(stderr=True)
+# Run paths, plan names and device strings are data: never parsed as rich markup.
+console = Console(stderr=True, markup=False, highlight=False)
 
 
 def config_dir() -> Path:
-    """`configs/` of the working directory if present, else the one beside the package."""
-    here = Path.cwd() / "configs"
-    if here.is_dir():
-        return here
-    return Path(__file__).resolve().parent.parent / "configs"
+    """The shipped `configs/`: inside the installed package (a wheel), else the source tree's.
+    Never the working directory's: a lab's own configs/ must not change what the demo runs."""
+    here = Path(__file__).resolve().parent
+    shipped = here / "configs"
+    return shipped if shipped.is_dir() else here.parent / "configs"
 
 
 def _version() -> str:
@@ -58,15 +65,6 @@ def _version() -> str:
         return version("gonio")
     except Exception:  # running from a source tree without an install
         return "0+unknown"
-
-
-def _clean(d: Any) -> Any:
-    """TOML has no null: drop None values recursively."""
-    if isinstance(d, dict):
-        return {k: _clean(v) for k, v in d.items() if v is not None}
-    if isinstance(d, list | tuple):
-        return [_clean(v) for v in d]
-    return d
 
 
 @dataclass
@@ -79,102 +77,114 @@ class AcquireResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def acquire(
-    rig_path: Path | str | None,
-    plan_path: Path | str | None,
-    out: Path | str,
-    *,
-    scene_path: Path | str | None = None,
-    progress: bool = True,
-    rig_config: RigConfig | None = None,
-    plan_config: PlanConfig | None = None,
-    scene_config: Any | None = None,
-    announce: bool = True,
-) -> AcquireResult:
-    """Start a run in `out`, or resume it when `out` holds an incomplete run."""
+@dataclass(frozen=True)
+class AcquireSpec:
+    """What `acquire` runs: the rig and plan (objects, or the paths of their files; both None
+    to resume), the emulated world for a simulated rig (a Scene, its dict, or a scene file;
+    None: the rig file's own scene), the operator for steps that need hands (None: asked on
+    the console), a progress bar, and the plan's announcement."""
+
+    rig: RigConfig | Path | str | None = None
+    plan: PlanConfig | Path | str | None = None
+    scene: Any | None = None
+    operator: Operator | None = None
+    progress: bool = True
+    announce: bool = True
+
+    def configs(self) -> tuple[RigConfig, PlanConfig, Any]:
+        """(rig, plan, scene) for a new run, files loaded with one-line errors."""
+        rig = self.rig if isinstance(self.rig, RigConfig) else load_rig(_need(self.rig, "--rig"))
+        plan = self.plan
+        if not isinstance(plan, PlanConfig):
+            plan = load_plan(_need(plan, "--plan"))
+        scene = self.scene
+        if isinstance(scene, str | Path):
+            from gonio.backends import load_scene
+
+            scene = load_scene(scene)
+        return rig, plan, scene
+
+
+def _check_resume_rig(out: Path, frozen: RigConfig, given: RigConfig | Path | str | None) -> None:
+    """A run directory is data: resuming it needs the rig file this machine trusts (--rig), and
+    the run's frozen rig must name the same devices, camera backend and commands. Everything
+    else (geometry, plan, scene) is the run's own, so the poses stay the ones it started with."""
+    if given is None:
+        raise UserError(
+            f"resuming {out} needs --rig: the rig file of this instrument (a run directory never "
+            "chooses the devices or commands it runs)"
+        )
+    trusted = given if isinstance(given, RigConfig) else load_rig(given)
+    diff = device_difference(frozen, trusted)
+    if diff is not None:
+        where, theirs, ours = diff
+        source = given if not isinstance(given, RigConfig) else "the rig given"
+        raise UserError(
+            f"{out}: the run's rig differs from {source} in {where} (run: {theirs!r}, rig "
+            f"file: {ours!r}); a run resumes only on the devices and commands of the rig file "
+            "it is given — check that this run is yours and give the rig file it was started with"
+        )
+
+
+def acquire(out: Path | str, spec: AcquireSpec | None = None) -> AcquireResult:
+    """Start a run in `out`, or resume it when `out` holds an incomplete run.
+
+    The run records what the rig file says about the instrument (camera, sample, reference
+    target, geometric calibration) into run.toml — what calibration will use — and takes the
+    plan's calibration phases before its poses. The operator answers the steps that need
+    hands; on a simulated rig the world performs what it confirms.
+    """
     out = Path(out)
+    spec = spec or AcquireSpec()
     t0 = time.perf_counter()
     resumed = (out / "manifest.sqlite").exists()
-    scene: Any = None
+    store = None
     if resumed:
         store = RunStore.open(out, writable=True)
-        frozen = store.run_config()
         try:
-            rig = RigConfig.model_validate(frozen["rig"])
-            plan_cfg = PlanConfig.model_validate(frozen["plan"])
-        except KeyError as exc:
-            raise UserError(f"{out}/run.toml: missing section [{exc.args[0]}]") from None
-        except ValidationError as err:
-            raise UserError(format_validation_error(out / "run.toml", err)) from None
-        scene = frozen.get("scene")
-        console.print(f"resuming {out}: {store.count('done')} capture(s) already done")
+            frozen = RunDocument.of(store)
+        except BaseException:
+            store.close()
+            raise
+        rig, plan_cfg, scene = frozen.rig, frozen.plan, frozen.scene
+        try:
+            _check_resume_rig(out, rig, spec.rig)
+        except BaseException:
+            store.close()
+            raise
     else:
         if out.exists() and (not out.is_dir() or any(out.iterdir())):
             raise UserError(f"{out}: exists and is not a gonio run; choose a new --out directory")
-        rig = rig_config or load_rig(_need(rig_path, "--rig"))
-        plan_cfg = plan_config or load_plan(_need(plan_path, "--plan"))
-        if scene_config is not None:
-            scene = scene_config
-        elif scene_path is not None:
-            from simulator.scene import load_scene
-
-            scene = load_scene(scene_path)
-        store = None
-    world = prepare_backends(rig, scene)
-    plan = build_plan(rig, plan_cfg)
-    estimate = lab_time_estimate(rig, plan_cfg)
-    lab_estimate = estimate.total_max_s
-    auto = plan_cfg.exposure_mode == "auto"
-    if announce:
-        brackets = (
-            f"auto-exposure (≤ {plan_cfg.auto_exposure.max_brackets} frames/pose)"
-            if auto
-            else f"{len(plan_cfg.exposures_s)} exposure(s)"
-        )
-        bound = "at most " if auto else ""
-        console.print(
-            f"plan {plan_cfg.name}: {len(plan.poses)} poses × {brackets}, "
-            f"{len(plan.skipped)} unreachable skipped; estimated lab time {bound}"
-            f"{fmt_duration(estimate.phase1_s)} (moves {fmt_duration(plan.move_time_s)}, raster "
-            f"order would be {fmt_duration(plan.raster_move_time_s)})"
-        )
-        if plan_cfg.type == "adaptive":
-            console.print(
-                f"adaptive: phase 2 refines around the peaks — at most "
-                f"{estimate.refine_max_poses} poses, at most "
-                f"{fmt_duration(estimate.phase2_max_s)}; total at most "
-                f"{fmt_duration(estimate.total_max_s)}"
-            )
-    rig_dev = build_rig(rig)
+        rig, plan_cfg, scene = spec.configs()
     try:
-        if store is None:
-            doc = {
-                "gonio": {
-                    "version": _version(),
-                    "started_at": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-                },
-                "rig": _clean(rig.model_dump(mode="json")),
-                "plan": _clean(plan_cfg.model_dump(mode="json")),
-                "camera": _clean(rig_dev.camera.describe()),
-                "sample": {"size_m": _sample_size(world)},
-            }
-            if world is not None:
-                doc["scene"] = _clean(world.scene.model_dump(mode="json"))
-            store = RunStore.create(out, tomli_w.dumps(doc))
-        if world is not None:
-            _record_sim_calibration_frames(out, world, plan_exposures_s(plan_cfg))
-        frozen_now = store.run_config()  # parsed once: camera and sample as frozen
-        levels = sample_levels_decoder(
-            frozen_now["camera"], rig, float(frozen_now["sample"]["size_m"])
-        )
-        with stop_requests() as flag:
-            outcome = run_acquisition(
-                store, rig_dev, plan, progress=progress, stop=flag, frame_levels=levels
-            )
-    finally:
-        rig_dev.close()
+        plan_name = str(spec.plan) if isinstance(spec.plan, str | Path) else "plan"
+        check_calibration_plan(rig, plan_cfg, plan_name)
+        world = prepare_backends(rig, scene)
+        plan = build_plan(rig, plan_cfg)
+        # One writer per run: a second `acquire --out RUN` (or a retake) is refused before it
+        # opens a device or prints a plan, not let in to drive the same arms (plumbing.locks;
+        # the kernel drops the lock if this process dies). Taken once the configs are known
+        # good, so a refused command leaves nothing behind.
+        out.parent.mkdir(parents=True, exist_ok=True)  # the run (and its lock) go in there
+        lock = RunLock(out).acquire()
+    except BaseException:
         if store is not None:
             store.close()
+        raise
+    try:
+        if store is not None:
+            done = store.count("done")
+            console.print(f"resuming {printable(out)}: {done} capture(s) already done")
+        estimate = lab_time_estimate(rig, plan_cfg)
+        if spec.announce:
+            _announce(plan_cfg, plan, estimate)
+        hands = ConsoleOperator() if spec.operator is None else spec.operator
+        if world is not None:
+            hands = world.hands(hands)
+        outcome = _run(out, store, (rig, plan_cfg, plan), world, hands, spec.progress)
+    finally:
+        lock.release()
+    auto = plan_cfg.exposure_mode == "auto"
     extra = {
         "lab_estimate": {
             "phase1_s": estimate.phase1_s,
@@ -187,15 +197,176 @@ def acquire(
             "refine_poses": outcome.refine_poses,
         },
     }
-    return AcquireResult(out, outcome, resumed, time.perf_counter() - t0, lab_estimate, extra)
+    elapsed = time.perf_counter() - t0
+    return AcquireResult(out, outcome, resumed, elapsed, estimate.total_max_s, extra)
 
 
-def plan_exposures_s(plan_cfg: PlanConfig) -> tuple[float, ...]:
-    """Every exposure the plan may take: its brackets, or the auto-exposure ladder (what the
-    master darks must cover)."""
-    if plan_cfg.exposure_mode == "auto":
-        return exposure_ladder(plan_cfg.auto_exposure)
-    return tuple(plan_cfg.exposures_s)
+def _run(out: Path, store, what, world, hands, progress: bool) -> RunOutcome:  # noqa: ANN001
+    """Open the devices, freeze run.toml for a new run, and run the plan (always closing)."""
+    rig, plan_cfg, plan = what
+    rig_dev = build_rig(rig)
+    try:
+        if store is None:
+            doc = RunDocument.new(
+                rig,
+                plan_cfg,
+                version=_version(),
+                device=rig_dev.camera.describe(),
+                scene=None if world is None else world.scene.model_dump(mode="json"),
+            )
+            store = RunStore.create(out, doc.toml())
+        frozen = RunDocument.of(store)  # parsed once: camera and sample as frozen
+        levels = sample_levels_decoder(frozen.camera, rig, float(frozen.sample["size_m"]))
+        with stop_requests() as flag:
+            return run_acquisition(
+                store,
+                rig_dev,
+                plan,
+                progress=progress,
+                stop=flag,
+                frame_levels=levels,
+                operator=hands,
+            )
+    finally:
+        rig_dev.close()
+        if store is not None:
+            store.close()
+
+
+CAPTURE_KINDS = ("dark", "flat", "reference")
+
+
+def capture_calibration(
+    run_dir: Path | str,
+    kind: str,
+    *,
+    rig_path: Path | str | None = None,
+    rig_config: RigConfig | None = None,
+    scene_path: Path | str | None = None,
+    scene_config: Any | None = None,
+    operator: Operator | None = None,
+) -> int:
+    """`gonio capture KIND RUN`: record a new take of darks, a flat or the reference target
+    into an existing run (also a finished one); earlier takes stay on disk and in the manifest,
+    and calibration uses the newest complete take. The phase settings are the run's plan's
+    (or the defaults); the rig description is the rig file given (e.g. a new reference
+    certificate). Returns the number of frames captured."""
+    from acquisition.calibration_capture import CalibrationPhases
+    from acquisition.config import (
+        CalibrationPhasesConfig,
+        DarkPhaseConfig,
+        FlatPhaseConfig,
+        ReferencePhaseConfig,
+    )
+    from acquisition.runlog import LOG_NAME, RunLog
+    from acquisition.runner import safe_stop
+
+    if kind not in CAPTURE_KINDS:
+        raise UserError(f"capture: KIND must be one of {', '.join(CAPTURE_KINDS)} (got {kind!r})")
+    run_dir = Path(run_dir)
+    store = RunStore.open(run_dir, writable=True, calibration_only=True)
+    try:
+        lock = RunLock(run_dir).acquire()  # one writer per run (see acquire)
+    except BaseException:
+        store.close()
+        raise
+    try:
+        plan_cfg = RunDocument.of(store).plan
+        rig = rig_config or load_rig(_need(rig_path, "--rig"))
+        phase = (
+            getattr(plan_cfg.calibration, kind)
+            or {
+                "dark": DarkPhaseConfig,
+                "flat": FlatPhaseConfig,
+                "reference": ReferencePhaseConfig,
+            }[kind]()
+        )
+        probe = plan_cfg.model_copy(
+            update={"calibration": CalibrationPhasesConfig(**{kind: phase})}
+        )
+        check_calibration_plan(rig, probe, "the run's plan")
+        scene = scene_config
+        if scene is None and scene_path is not None:
+            from gonio.backends import load_scene
+
+            scene = load_scene(scene_path)
+        world = prepare_backends(rig, scene)
+        hands = ConsoleOperator() if operator is None else operator
+        if world is not None:
+            hands = world.hands(hands)
+        rig_dev = build_rig(rig)
+        log = RunLog(run_dir / LOG_NAME, rig_dev.clock.now)
+        try:
+            with stop_requests() as flag:
+                phases = CalibrationPhases(
+                    store, rig_dev, plan_cfg, hands, log.emit, lambda: bool(flag.reason)
+                )
+                ok = _capture_take(phases, kind, phase, rig_dev, rig)
+                phases.ready_for_measurement()
+            reason = f"capture {kind}: " + ("complete" if ok else f"stopped ({flag.reason})")
+            safe_stop(rig_dev, store, reason, park=kind == "reference", log=log)
+        except BaseException as exc:
+            safe_stop(rig_dev, store, f"capture {kind}: {exc}", park=False, log=log)
+            raise
+        finally:
+            log.close()
+            rig_dev.close()
+        if not ok:
+            raise UserError(f"capture {kind} stopped ({flag.reason}); run it again to finish")
+        return phases.captured
+    finally:
+        store.close()
+        lock.release()
+
+
+def _capture_take(phases: Any, kind: str, phase: Any, rig_dev: Any, rig: RigConfig) -> bool:
+    """One new take of `kind`; the reference needs torque and the lamp (warmed up)."""
+    if kind == "dark":
+        return phases.dark(phase, new_take=True)
+    if kind == "flat":
+        return phases.flat(phase, new_take=True)
+    rig_dev.torque(True)
+    rig_dev.light.set_intensity(rig.light.level)
+    if rig.light.manual:
+        from acquisition.operator import ask, step
+
+        ask(phases.operator, step("lamp_on", warmup_s=rig.light.warmup_s))
+    rig_dev.light.on()
+    if rig.light.warmup_s:
+        rig_dev.clock.sleep(rig.light.warmup_s)
+    return phases.reference(phase, new_take=True)
+
+
+def _announce(plan_cfg: PlanConfig, plan: Any, estimate: Any) -> None:
+    auto = plan_cfg.exposure_mode == "auto"
+    brackets = (
+        f"auto-exposure (≤ {plan_cfg.auto_exposure.max_brackets} frames/pose)"
+        if auto
+        else f"{len(plan_cfg.exposures_s)} exposure(s)"
+    )
+    bound = "at most " if auto else ""
+    console.print(
+        f"plan {printable(plan_cfg.name)}: {len(plan.poses)} poses × {brackets}, "
+        f"{len(plan.skipped)} unreachable skipped; estimated lab time {bound}"
+        f"{fmt_duration(estimate.phase1_s)} (moves {fmt_duration(plan.move_time_s)}, raster "
+        f"order would be {fmt_duration(plan.raster_move_time_s)})"
+    )
+    if plan_cfg.type == "adaptive":
+        console.print(
+            f"adaptive: phase 2 refines around the peaks — at most "
+            f"{estimate.refine_max_poses} poses, at most "
+            f"{fmt_duration(estimate.phase2_max_s)}; total at most "
+            f"{fmt_duration(estimate.total_max_s)}"
+        )
+    if plan_cfg.type == "retro" and plan.retro_gap_deg is not None:
+        console.print(
+            f"retro-reflection: the camera gets within {plan.retro_gap_deg:.2f} deg of the light "
+            "(the rig's min_separation_deg); the peak inside that gap is not measured"
+        )
+    cal = plan_cfg.calibration
+    kinds = [k for k in ("dark", "flat", "reference") if getattr(cal, k) is not None]
+    if kinds:
+        console.print(f"calibration phases first: {', '.join(kinds)}")
 
 
 def sample_levels_decoder(camera: dict[str, Any], rig: RigConfig, sample_size_m: float):
@@ -241,97 +412,104 @@ def sample_levels_decoder(camera: dict[str, Any], rig: RigConfig, sample_size_m:
     return levels
 
 
-def _record_sim_calibration_frames(out: Path, world: Any, exposures_s: tuple[float, ...]) -> None:
-    """Master darks (one set per exposure), a flat field and reference-target captures,
-    recorded before the first pose as a lab would — only when the simulated sensor has an effect
-    they correct (dark current, DSNU, PRNU, vignetting); a run that already has them (a resumed
-    run) keeps its own."""
-    from calibration.darks import calibration_frames, record_frames
-
-    s = world.scene.sensor
-    if not (s.vignetting or s.prnu > 0 or s.dark_current_e_s > 0 or s.dsnu_e > 0):
-        return
-    cam = world.camera
-    if not calibration_frames(out, "dark"):
-        record_frames(out, "dark", cam.capture_dark, list(exposures_s), 16)
-    if not calibration_frames(out, "flat"):
-        record_frames(out, "flat", cam.capture_flat, [max(exposures_s)], 32)
-    if not calibration_frames(out, "reference"):
-        # A Lambertian reference target at the standard poses (calibration.reference): with it
-        # the reduction measures the light × camera scale instead of trusting certificates.
-        from calibration.reference import record_reference_poses
-
-        # Three brackets at most (shortest, middle, longest) span the HDR range; a long
-        # auto-exposure ladder would only multiply the renders.
-        ref_exposures = sorted(exposures_s)
-        if len(ref_exposures) > 3:
-            ref_exposures = [
-                ref_exposures[0],
-                ref_exposures[len(ref_exposures) // 2],
-                ref_exposures[-1],
-            ]
-        record_reference_poses(
-            out,
-            lambda t, light_pos, cam_pos: cam.capture_reference(
-                t, light_pos, cam_pos, level=world.rig.light.level
-            ),
-            world.kinematics,
-            ref_exposures,
-            level=world.rig.light.level,
-        )
-
-
-def _sample_size(world: Any) -> float:
-    if world is not None:
-        return float(world.scene.sample.size_m)
-    raise UserError("a real rig must state the sample size (not supported yet in this version)")
-
-
 def _need(value: Path | str | None, flag: str) -> Path:
     if value is None:
         raise UserError(f"{flag} is required when starting a new run")
     return Path(value)
 
 
+@dataclass(frozen=True)
+class SpineSpec:
+    """One pass of the spine: acquire as `acquire` says (AcquireSpec), calibrate with `reduce`
+    (calibration.reduce.ReduceOptions; None: the defaults) and fit with `fit`
+    (fitting.fit.FitOptions; None: stop after calibration)."""
+
+    acquire: AcquireSpec
+    reduce: Any = None
+    fit: Any = None
+
+
 @dataclass
-class Timings:
-    stages_s: dict[str, float] = field(default_factory=dict)
+class SpineResult:
+    run_dir: Path
+    acquired: AcquireResult
+    table: Any  # fitting.samples.SampleTable
+    fit: Any  # fitting.result.FitResult | None
+    timings_s: dict[str, float]  # wall seconds per stage: acquire, calibrate, fit
+    lab_time_s: float  # on the rig's clock
+    poses: int  # measured poses
+
+
+def run_spine(run_dir: Path | str, spec: SpineSpec) -> SpineResult:
+    """acquire → calibrate → fit, the one spine the demo, the studies and the benchmarks run."""
+    from calibration.reduce import ReduceOptions, reduce_run
+    from fitting.fit import fit_samples
+
+    run_dir = Path(run_dir)
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    res = acquire(run_dir, spec.acquire)
+    timings["acquire"] = time.perf_counter() - t
+    if not res.outcome.complete:
+        raise UserError(f"{run_dir}: acquisition stopped: {res.outcome.reason}")
+    t = time.perf_counter()
+    progress = spec.acquire.progress
+    table = reduce_run(run_dir, spec.reduce or ReduceOptions(), progress=progress)
+    timings["calibrate"] = time.perf_counter() - t
+    fit = None
+    if spec.fit is not None:
+        t = time.perf_counter()
+        fit = fit_samples(table, spec.fit, out_dir=run_dir, progress=progress)
+        timings["fit"] = time.perf_counter() - t
+    with RunStore.open(run_dir) as store:
+        lab = float(store.meta("lab_time_s") or "nan")
+        poses = len({r.pose_index for r in store.captures("done")})
+    return SpineResult(run_dir, res, table, fit, timings, lab, poses)
 
 
 def demo(out: Path | None, scene_path: Path | None, quick: bool, progress: bool = True) -> Path:
     """Simulated acquisition → calibration → fit → report into `out`; returns the report path."""
-    from calibration.reduce import ReduceOptions, reduce_run
+    from calibration.reduce import ReduceOptions
     from fitting.export import write_material_xml
-    from fitting.fit import fit_samples
     from gonio.report import write_report
 
     cfg = config_dir()
     if out is None:
         stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
         out = Path("runs") / f"demo-{stamp}"
-    timings: dict[str, float] = {}
-    t = time.perf_counter()
-    res = acquire(
-        cfg / "rigs" / "sim.toml",
-        cfg / "plans" / "demo.toml",
-        out,
-        scene_path=scene_path,
-        progress=progress,
+    if (out / "manifest.sqlite").exists() or (out.exists() and any(Path(out).iterdir())):
+        raise UserError(f"{out}: exists; choose a new --out directory for the demo")
+    from gonio.backends import load_scene
+
+    rig = load_rig(cfg / "rigs" / "sim.toml")
+    scene = load_scene(scene_path) if scene_path is not None else None
+    # The model the fit uses is the one the scene's material is, when there is one.
+    fit_opts, line = demo_fit_choice(
+        scene if scene is not None else load_scene(_need(rig.scene, "the rig's scene")), quick
     )
-    timings["acquire (simulate)"] = time.perf_counter() - t
-    if not res.outcome.complete:
-        raise UserError(f"acquisition stopped: {res.outcome.reason}")
-    t = time.perf_counter()
-    # One pixel per 2×2 region ("center"): exact per-pixel directions (no averaging bias) and
-    # a quarter of the photons — enough samples (~67k) for the fit to stay quick.
-    table = reduce_run(out, ReduceOptions(bin_px=2, mode="center"), progress=progress)
-    timings["calibrate"] = time.perf_counter() - t
-    t = time.perf_counter()
-    demo_fit = _demo_fit_settings(quick)
-    fit = fit_samples(table, out_dir=out, progress=progress, **demo_fit)
-    timings["fit"] = time.perf_counter() - t
+    console.print(line, soft_wrap=True, markup=False)
+    spec = SpineSpec(
+        AcquireSpec(
+            rig=rig,
+            plan=load_plan(cfg / "plans" / "demo.toml"),
+            scene=scene,
+            operator=AutoOperator(),  # the simulated lab's hands do every calibration step
+            progress=progress,
+            announce=True,
+        ),
+        # One pixel per 2×2 region ("center"): exact per-pixel directions (no averaging bias)
+        # and a quarter of the photons — enough samples (~67k) for the fit to stay quick.
+        reduce=ReduceOptions(bin_px=2, mode="center"),
+        fit=fit_opts,
+    )
+    res = run_spine(out, spec)
+    timings = {
+        "acquire (simulate)": res.timings_s["acquire"],
+        "calibrate": res.timings_s["calibrate"],
+        "fit": res.timings_s["fit"],
+    }
     # The fitted material for a renderer: built-in roughconductor/blendbsdf where exact.
-    write_material_xml(fit, out / f"material-{demo_fit['model_name']}.xml")
+    write_material_xml(res.fit, out / f"material-{spec.fit.model}.xml")
     t = time.perf_counter()
     report = write_report(out, compute_times_s=timings)
     timings["report"] = time.perf_counter() - t
@@ -340,7 +518,30 @@ def demo(out: Path | None, scene_path: Path | None, quick: bool, progress: bool 
     return report
 
 
-def _demo_fit_settings(quick: bool) -> dict[str, Any]:
+def demo_fit_choice(scene: Any, quick: bool):  # noqa: ANN201 - (FitOptions, str)
+    """(fit options, one line saying what is fitted) for the demo of `scene`: the model and
+    options its material *is* (gonio.backends.scene_fit_model), else the demo's own model
+    (demo_fit_options) with the statement that no parameter truth exists for the scene."""
+    from gonio.backends import material_type, scene_fit_model
+
+    base = demo_fit_options(quick)
+    match = scene_fit_model(scene)
+    if match is None:
+        opts = ", ".join(f"{k}={v}" for k, v in base.model_options.items())
+        return base, (
+            f"demo: no model here represents the scene's material {material_type(scene)} "
+            f"exactly; fitting {base.model} ({opts}) — no parameter truth exists for this scene"
+        )
+    chosen = base.replace(model=match["model"], model_options=dict(match["options"]))
+    if match["model"] != "torrance-sparrow":
+        chosen = chosen.replace(shared=None)  # the model's own default sharing
+    opts = ", ".join(f"{k}={v}" for k, v in chosen.model_options.items()) or "no options"
+    return chosen, (
+        f"demo: the scene's material is {match['describe']}: fitting {chosen.model} ({opts})"
+    )
+
+
+def demo_fit_options(quick: bool):  # noqa: ANN201 - fitting.fit.FitOptions
     """The seed's Torrance-Sparrow form f = kd/π + ks·D G F/(π cos θi cos θo) with its
     Beckmann D, plus a Lambertian term. Two options match what Mitsuba renders: the specular
     part is a perfect conductor (F ≡ 1, fresnel="none"), and Mitsuba shadows with the Smith G1
@@ -348,11 +549,13 @@ def _demo_fit_settings(quick: bool) -> dict[str, Any]:
     still comes back to 1e-4 but kd is biased by ~3e-4 relative — invisible in a lab, yet
     several σ at the simulator's noise level, so the truth would fall outside the 95% interval.
     """
-    return {
-        "model_name": "torrance-sparrow",
-        "options": {"fresnel": "none", "shadowing": "smith-rational"},
-        "shared": ("m",),
-        "walkers": 32,
-        "steps": 1500 if quick else 4000,
-        "seed": 1,
-    }
+    from fitting.fit import FitOptions
+
+    return FitOptions(
+        model="torrance-sparrow",
+        model_options={"fresnel": "none", "shadowing": "smith-rational"},
+        shared=("m",),
+        walkers=32,
+        steps=1500 if quick else 4000,
+        seed=1,
+    )

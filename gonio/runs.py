@@ -32,6 +32,7 @@ from rich.table import Table
 from acquisition.config import PlanConfig, RigConfig
 from acquisition.store import RunStore, RunStoreError
 from gonio.errors import UserError
+from gonio.plain_text import plain
 
 __all__ = [
     "RunPathError",
@@ -42,9 +43,6 @@ __all__ = [
     "summarize_run",
     "runs_table",
     "show_run",
-    "ServoCheck",
-    "check_rig",
-    "rig_check_table",
 ]
 
 
@@ -174,19 +172,18 @@ def _fmt_s(seconds: float) -> str:
 
 
 def runs_table(root: Path | str) -> Table:
-    t = Table(title=f"runs under {root}")
+    t = Table(title=plain(f"runs under {root}"))
     for col in ("run", "status", "captures", "started", "lab time", "last stop"):
         t.add_column(col)
     for path in find_runs(root):
         s = summarize_run(path)
         total = "?" if s.total is None else str(s.total)
         t.add_row(
-            str(path),
-            s.status,
-            f"{s.done}/{total}",
-            s.started,
-            _fmt_s(s.lab_time_s),
-            s.last_stop or "",
+            *map(
+                plain,
+                (path, s.status, f"{s.done}/{total}", s.started, _fmt_s(s.lab_time_s)),
+            ),
+            plain(s.last_stop or ""),
         )
     return t
 
@@ -197,12 +194,12 @@ def show_run(path: Path | str, *, verify: bool = True) -> tuple[Group, list[str]
     s = summarize_run(path)
     if s.status.startswith("unreadable"):
         raise RunStoreError(s.status.removeprefix("unreadable: "))
-    head = Table(title=f"run {path}", show_header=False)
+    head = Table(title=plain(f"run {path}"), show_header=False)
     head.add_column("key")
     head.add_column("value")
     rig, plan = s.rig, s.plan
-    head.add_row("status", s.status)
-    head.add_row("started", s.started)
+    head.add_row("status", plain(s.status))
+    head.add_row("started", plain(s.started))
     if s.total is None:
         head.add_row("captures", f"{s.done} done, {s.pending} pending (count set during the run)")
     else:
@@ -210,13 +207,17 @@ def show_run(path: Path | str, *, verify: bool = True) -> tuple[Group, list[str]
     head.add_row("lab time", _fmt_s(s.lab_time_s))
     head.add_row(
         "rig",
-        f"{rig.get('name', '?')} (bus {rig.get('bus', {}).get('url', '?')}, "
-        f"{len(rig.get('axes', []))} axes, camera {rig.get('camera', {}).get('backend', '?')})",
+        plain(
+            f"{rig.get('name', '?')} (bus {rig.get('bus', {}).get('url', '?')}, "
+            f"{len(rig.get('axes', []))} axes, camera {rig.get('camera', {}).get('backend', '?')})"
+        ),
     )
     head.add_row(
         "plan",
-        f"{plan.get('name', '?')} ({plan.get('type', '?')}, order {plan.get('order', '?')}, "
-        f"exposures {_exposures(plan)})",
+        plain(
+            f"{plan.get('name', '?')} ({plan.get('type', '?')}, order {plan.get('order', '?')}, "
+            f"exposures {_exposures(plan)})"
+        ),
     )
     store = RunStore.open(path)
     try:
@@ -233,98 +234,12 @@ def show_run(path: Path | str, *, verify: bool = True) -> tuple[Group, list[str]
     for col in ("at", "kind", "message"):
         ev.add_column(col)
     for at, kind, message in events:
-        ev.add_row(at, kind, message)
+        ev.add_row(plain(at), plain(kind), plain(message))
     parts: list[Any] = [head, ev]
     if problems:
         pt = Table(title="checksum problems")
         pt.add_column("frame")
         for p in problems[:50]:
-            pt.add_row(p)
+            pt.add_row(plain(p))
         parts.append(pt)
     return Group(*parts), problems
-
-
-# -- rig check ----------------------------------------------------------------------------------
-@dataclass
-class ServoCheck:
-    role: str
-    servo_id: int
-    ok: bool
-    model: str = "-"
-    firmware: int | None = None
-    voltage_V: float | None = None
-    temperature_C: float | None = None
-    limits_ticks: tuple[int, int] | None = None
-    hardware_error: list[str] = field(default_factory=list)
-    problem: str = ""
-
-
-def check_rig(rig: RigConfig) -> list[ServoCheck]:
-    """Ping every servo of `rig` and read its model, firmware, voltage, temperature, position
-    limits and hardware error status. Never writes a register (no torque, no reboot)."""
-    from acquisition.clock import get_clock
-    from acquisition.dynamixel import (
-        ADDR,
-        MODEL_NAMES,
-        DynamixelBus,
-        decode_hardware_error,
-    )
-    from acquisition.protocols import DeviceFault
-
-    bus = DynamixelBus(
-        rig.bus.url,
-        baudrate=rig.bus.baudrate,
-        retries=rig.bus.retries,
-        on_alert="stop",
-        clock=get_clock(rig.clock),
-    )
-    rows = []
-    try:
-        for a in rig.axes:
-            row = ServoCheck(a.role, a.id, ok=False)
-            try:
-                number = bus.ping(a.id)
-                row.model = MODEL_NAMES.get(number, f"model {number}")
-
-                def reg(name: str, size: int, sid: int = a.id) -> int:
-                    return bus.read(sid, ADDR[name], size, check_alert=False)
-
-                row.firmware = reg("firmware_version", 1)
-                row.voltage_V = reg("present_input_voltage", 2) / 10.0
-                row.temperature_C = float(reg("present_temperature", 1))
-                row.limits_ticks = (reg("min_position_limit", 4), reg("max_position_limit", 4))
-                hw = reg("hardware_error_status", 1)
-                row.hardware_error = decode_hardware_error(hw) if hw else []
-                notes = []
-                if row.model != a.model:
-                    notes.append(f"config says {a.model}")
-                if hw:
-                    notes.append("hardware error latched (reboot clears it once the cause is gone)")
-                row.problem = "; ".join(notes)
-                row.ok = not notes
-            except DeviceFault as exc:
-                row.problem = str(exc)
-            rows.append(row)
-    finally:
-        bus.close()
-    return rows
-
-
-def rig_check_table(rig: RigConfig, rows: list[ServoCheck]) -> Table:
-    t = Table(title=f"rig {rig.name}: bus {rig.bus.url} at {rig.bus.baudrate} baud")
-    cols = ("role", "id", "model", "firmware", "voltage", "temp", "limits (ticks)", "hw error")
-    for col in (*cols, "status"):
-        t.add_column(col)
-    for r in rows:
-        t.add_row(
-            r.role,
-            str(r.servo_id),
-            r.model,
-            "-" if r.firmware is None else str(r.firmware),
-            "-" if r.voltage_V is None else f"{r.voltage_V:.1f} V",
-            "-" if r.temperature_C is None else f"{r.temperature_C:.0f} °C",
-            "-" if r.limits_ticks is None else f"{r.limits_ticks[0]}..{r.limits_ticks[1]}",
-            ", ".join(r.hardware_error) or ("-" if r.firmware is None else "none"),
-            "OK" if r.ok else f"FAIL: {r.problem}",
-        )
-    return t

@@ -13,22 +13,23 @@ import numpy as np
 __all__ = ["eval_fr"]
 
 
-def _frame(mi, si):
+def _frame(mi, si, uv=None):
     si.p = mi.Point3f(0.0, 0.0, 0.0)
     si.n = mi.Normal3f(0.0, 0.0, 1.0)
     si.sh_frame = mi.Frame3f(
         mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0)
     )
-    si.uv = mi.Point2f(0.5, 0.5)
+    si.uv = mi.Point2f(0.5, 0.5) if uv is None else uv
     return si
 
 
-def eval_fr(bsdf, wi, wo, variant: str, *, wavefront: bool = False) -> np.ndarray:
+def eval_fr(bsdf, wi, wo, variant: str, *, wavefront: bool = False, uv=None) -> np.ndarray:
     """f_r (N, 3) in sr⁻¹ of `bsdf` (loaded in the active `variant`) for unit ``wi`` (to the
     light) and ``wo`` (to the camera), sample frame, (N, 3) each.
 
     ``wavefront``: evaluate with symbolic calls and loops off — a Python BSDF
-    (simulator.materials) needs concrete arrays in the llvm variants.
+    (simulator.materials) needs concrete arrays in the llvm variants. ``uv`` (N, 2): the
+    surface point's texture coordinates (a textured BSDF, simulator.texture); default (½, ½).
     """
     import drjit as dr
     import mitsuba as mi
@@ -41,11 +42,14 @@ def eval_fr(bsdf, wi, wo, variant: str, *, wavefront: bool = False) -> np.ndarra
         out = np.zeros((n, 3))
         si = _frame(mi, mi.SurfaceInteraction3f())
         for j in range(n):
+            if uv is not None:
+                si.uv = mi.Point2f(*(float(x) for x in uv[j]))
             si.wi = mi.Vector3f(*wo[j])
             v = bsdf.eval(ctx, si, mi.Vector3f(*wi[j]))
             out[j] = [v[0], v[1], v[2]]
     else:
-        si = _frame(mi, dr.zeros(mi.SurfaceInteraction3f, n))
+        uv_mi = None if uv is None else mi.Point2f(np.asarray(uv)[:, 0], np.asarray(uv)[:, 1])
+        si = _frame(mi, dr.zeros(mi.SurfaceInteraction3f, n), uv_mi)
         si.wi = mi.Vector3f(wo[:, 0], wo[:, 1], wo[:, 2])
         w = mi.Vector3f(wi[:, 0], wi[:, 1], wi[:, 2])
         if wavefront:

@@ -3,7 +3,9 @@
 It implements `acquisition.protocols.Camera`. Where the arms *physically* are comes from the
 servo emulator's true positions (which include any injected mounting offset), not from what
 the driver commanded — so a calibration error in the rig shows up in the images as it would
-on a real rig.
+on a real rig. What it faces follows the emulated world (`WorldView`): a capped lens gives a
+dark frame, the flat source a uniform field, and the holder the sample, the reference target
+or a calibration board — as the operator's (simulated) hands left them.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -22,11 +25,22 @@ from simulator.render import Renderer
 from simulator.scene import Scene
 from simulator.sensor import Sensor
 
-__all__ = ["SimCamera"]
+__all__ = ["SimCamera", "WorldView"]
 
 
 def _material_dict(material) -> dict:
     return material.model_dump() if hasattr(material, "model_dump") else dict(material)
+
+
+@dataclass
+class WorldView:
+    """What the camera faces. `state` has `lens` ("open" | "capped" | "flat"), `holder`
+    ("sample" | "reference" | "board") and `board` (the board's fields); the reference target's
+    true material comes from `reference_material()`."""
+
+    state: Any
+    reference_material: Callable[[], Any] | None = None
+    reference_size_m: float | None = None
 
 
 class SimCamera:
@@ -38,6 +52,7 @@ class SimCamera:
         light_level: Callable[[], float],
         readout_s: float = 0.05,
         renderer: Renderer | None = None,
+        world: WorldView | None = None,
     ) -> None:
         self.scene = scene
         self.clock = clock
@@ -53,6 +68,8 @@ class SimCamera:
         )
         self.captures = 0
         self._reference_renderers: dict[str, Renderer] = {}
+        self._boards: dict[str, Any] = {}
+        self.world = world
 
     def supported_exposures(self) -> tuple[float, float]:
         return (1e-5, 30.0)
@@ -68,32 +85,46 @@ class SimCamera:
         return float(math.floor(min(well, 2**s.adc_bits - 1)))
 
     def describe(self) -> dict[str, Any]:
-        s = self.scene.sensor
+        """What the device itself reports (a real camera's model and serial): identity and
+        output format only — calibration uses the rig file's description, never this."""
         k = self.renderer.intrinsics
         return {
             "model": "gonio simulated camera (Mitsuba + EMVA 1288)",
+            "serial": f"sim-{self.scene.seed}",
             "format": self.scene.camera.format,
             "resolution": [int(k["width"]), int(k["height"])],
-            "fx": k["fx"],
-            "fy": k["fy"],
-            "cx": k["cx"],
-            "cy": k["cy"],
-            "f_number": self.scene.camera.f_number,
-            "pixel_pitch_m": s.pixel_pitch_m,
-            "quantum_efficiency": s.quantum_efficiency,
-            "wavelength_m": s.wavelength_m,
-            "gain_e_per_dn": s.gain_e_per_dn,
-            "black_level_dn": s.black_level_dn,
-            "white_level_dn": self.clip_level_dn,
-            "read_noise_e": s.read_noise_e,
-            "bayer": s.bayer or "none",
         }
 
     def capture(self, exposure_s: float) -> Frame:
+        """A frame of whatever the camera faces now (see WorldView)."""
+        st = None if self.world is None else self.world.state
+        if st is not None and st.lens == "capped":
+            return self.capture_dark(exposure_s)
+        if st is not None and st.lens == "flat":
+            return self.capture_flat(exposure_s, self.scene.flat_source_radiance_W_m2_sr)
         light_pos, camera_pos = self._positions()
         level = float(self._light_level())
-        radiance = self.renderer.render(light_pos, camera_pos, intensity_scale=level)
+        if st is not None and st.holder == "reference":
+            material = self.world.reference_material()
+            renderer = self.reference_renderer(material, size_m=self.world.reference_size_m)
+        elif st is not None and st.holder == "board":
+            renderer = self._board_renderer(st.board)
+        else:
+            renderer = self.renderer
+        radiance = renderer.render(light_pos, camera_pos, intensity_scale=level)
         return self._expose(radiance, exposure_s)
+
+    def _board_renderer(self, board: Any) -> Renderer:
+        """A calibration board printed on a Lambertian sheet in the sample's place, lit by the
+        lamp (simulator.render.board_renderer), one renderer per board."""
+        key = repr(sorted(vars(board).items()))
+        if key not in self._boards:
+            from simulator.render import board_renderer
+
+            self._boards[key] = board_renderer(
+                self.scene, board, variant=self.renderer.variant
+            ).renderer
+        return self._boards[key]
 
     # -- calibration frames (what a lab does with a lens cap and an integrating sphere) ----------
     def capture_dark(self, exposure_s: float) -> Frame:
@@ -144,17 +175,21 @@ class SimCamera:
         return self._expose(radiance, exposure_s)
 
     def reference_renderer(
-        self, material: object | None = None, reflectance: float = 0.99
+        self,
+        material: object | None = None,
+        reflectance: float = 0.99,
+        size_m: float | None = None,
     ) -> Renderer:
         """The renderer of the reference target (one per target, loaded once). Its
         ``truth_bsdf`` is Mitsuba's own f_r of the target — what a lab's calibration certificate
-        tabulates (tests build their f_ref table from it)."""
+        tabulates (tests build their f_ref table from it). ``size_m``: the target's side
+        (default: the sample's)."""
         key = json.dumps(None if material is None else _material_dict(material), sort_keys=True)
-        key += f"/{reflectance!r}"
+        key += f"/{reflectance!r}/{size_m!r}"
         if key not in self._reference_renderers:
             from simulator.render import reference_target_scene
 
-            scene = reference_target_scene(self.scene, reflectance, material)
+            scene = reference_target_scene(self.scene, reflectance, material, size_m=size_m)
             self._reference_renderers[key] = Renderer(scene, variant=self.renderer.variant)
         return self._reference_renderers[key]
 

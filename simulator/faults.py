@@ -7,7 +7,7 @@ no frame, and a disk that fills up. (Bus faults live in `simulator.dxl.faults`; 
   a tethered camera does when the shutter fires but no file arrives, or the USB link drops.
   The frame the camera would have produced is not consumed: a real camera that misses simply
   has no frame, so the next capture is a fresh exposure.
-* `full_disk` makes the atomic file writer (`fitting.atomic`, used by the run store for every
+* `full_disk` makes the atomic file writer (`plumbing.atomic`, used by the run store for every
   frame) fail with ``OSError(ENOSPC)`` once a byte budget is used up — a disk that fills up,
   injected in-process so it needs no root and no mount.
 
@@ -129,12 +129,12 @@ class _BudgetedFile:
 
 @contextmanager
 def full_disk(free_bytes: int | None) -> Iterator[DiskBudget]:
-    """Within the block, files written through `fitting.atomic` (every frame of a run) share
+    """Within the block, files written through `plumbing.atomic` (every frame of a run) share
     `free_bytes` of disk; then each write fails with ENOSPC. Set `budget.free_bytes = None`
     to free the disk again (the operator cleared space)."""
     import builtins
 
-    import fitting.atomic as atomic
+    import plumbing.atomic as atomic
 
     budget = DiskBudget(free_bytes)
     real_open = builtins.open

@@ -30,6 +30,7 @@ from simulator.scene import (
     RoughConductorMaterial,
     RoughDielectricMaterial,
     RoughPlasticMaterial,
+    TexturedMaterial,
 )
 
 __all__ = [
@@ -118,6 +119,10 @@ def material_dict(material) -> dict:
     if isinstance(material, ModelMaterial):
         register_model_bsdf()
         return {"type": MODEL_PLUGIN, "spec": material.model_dump_json()}
+    if isinstance(material, TexturedMaterial):
+        from simulator.texture import textured_dict
+
+        return textured_dict(material)
     if isinstance(material, BlendMaterial):
         # Mitsuba blendbsdf: weight 0 selects the first nested BSDF, 1 the second, i.e.
         # f = (1 − w)·first + w·second. Nested BSDFs are taken in declaration order.

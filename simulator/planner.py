@@ -71,6 +71,7 @@ STAGE_NS_PER_PIXEL = {
     "dsnu": 2.0,
     "shot_noise": 26.0,
     "full_well": 3.0,
+    "nonlinearity": 3.0,  # two multiplies and an add, like full_well (not yet benchmarked)
     "read_noise": 10.0,
     "adc": 6.0,
 }

@@ -184,11 +184,43 @@ class Renderer:
         self.scene = scene
         self._mi = mi
         self._wavefront = needs_wavefront(scene.material)
-        w, h = scene.camera.resolution
         half = scene.sample.size_m / 2.0
         # A calibration target replaces the sample's BSDF and extent (see board_renderer).
         hx, hy = (half, half) if sample_extent_m is None else (e / 2.0 for e in sample_extent_m)
         self.sample_half_extent_m = (hx, hy)
+        desc = self._scene_dict(sample_bsdf)
+        # optimize=False: Mitsuba would otherwise merge shapes that share an identical BSDF
+        # (e.g. a holder as white as the sample) into one mesh, and the sample's BSDF is needed.
+        self._scene = self._with_flags(mi.load_dict, desc, optimize=False)
+        self._params = mi.traverse(self._scene)
+        shapes = list(self._scene.shapes())
+        self._bsdf = next(s for s in shapes if s.id() == "sample").bsdf()
+        self.intrinsics = camera_intrinsics(scene)
+        self.loaded = {
+            "integrator": _class_name(self._scene.integrator()),
+            "emitters": sorted(_class_name(e) for e in self._scene.emitters()),
+            # Mitsuba keeps the dict key as id for analytic shapes; meshes (the holder's cubes)
+            # report an empty id, so count shapes by their class as well.
+            "shapes": sorted(f"{_class_name(s)}:{s.id()}" for s in shapes),
+            "spp": spp,
+            "max_depth": plan.max_depth if plan.integrator == "path" else None,
+        }
+        self.effect_counts: Counter[str] = Counter()
+        self._render_effects = ["render", f"light_{scene.light.type}"]
+        if scene.holder is not None:
+            self._render_effects.append("holder")
+        if scene.stray_light is not None:
+            self._render_effects.append("stray_light")
+        if plan.integrator == "path":
+            self._render_effects.append("path_integrator")
+
+    def _scene_dict(self, sample_bsdf: dict | None) -> dict:
+        """The Mitsuba scene description: integrator (what the effect plan asks), pinhole
+        sensor with a box filter, the lamp, the sample rectangle, and the optional holder walls
+        and stray-light environment."""
+        mi, scene, plan, spp = self._mi, self.scene, self.plan, self.spp
+        w, h = scene.camera.resolution
+        hx, hy = self.sample_half_extent_m
         T = mi.ScalarTransform4f
         to_world = T().look_at(origin=[0.0, 0.0, 1.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0])
         if plan.integrator == "path":
@@ -243,30 +275,7 @@ class Renderer:
                 "radiance": _rgb(scene.stray_light.radiance_W_m2_sr),
                 "sampling_weight": 0.0,
             }
-        # optimize=False: Mitsuba would otherwise merge shapes that share an identical BSDF
-        # (e.g. a holder as white as the sample) into one mesh, and the sample's BSDF is needed.
-        self._scene = self._with_flags(mi.load_dict, desc, optimize=False)
-        self._params = mi.traverse(self._scene)
-        shapes = list(self._scene.shapes())
-        self._bsdf = next(s for s in shapes if s.id() == "sample").bsdf()
-        self.intrinsics = camera_intrinsics(scene)
-        self.loaded = {
-            "integrator": _class_name(self._scene.integrator()),
-            "emitters": sorted(_class_name(e) for e in self._scene.emitters()),
-            # Mitsuba keeps the dict key as id for analytic shapes; meshes (the holder's cubes)
-            # report an empty id, so count shapes by their class as well.
-            "shapes": sorted(f"{_class_name(s)}:{s.id()}" for s in shapes),
-            "spp": spp,
-            "max_depth": plan.max_depth if plan.integrator == "path" else None,
-        }
-        self.effect_counts: Counter[str] = Counter()
-        self._render_effects = ["render", f"light_{scene.light.type}"]
-        if scene.holder is not None:
-            self._render_effects.append("holder")
-        if scene.stray_light is not None:
-            self._render_effects.append("stray_light")
-        if plan.integrator == "path":
-            self._render_effects.append("path_integrator")
+        return desc
 
     def _light_dict(self) -> dict:
         light = self.scene.light
@@ -476,7 +485,11 @@ def board_renderer(
 
 
 def reference_target_scene(
-    scene: Scene, reflectance: float = 0.99, material: object | None = None
+    scene: Scene,
+    reflectance: float = 0.99,
+    material: object | None = None,
+    *,
+    size_m: float | None = None,
 ) -> Scene:
     """The same rig with the sample replaced by a reference target: Lambertian of albedo
     ``reflectance`` (f_ref = ρ/π, e.g. Spectralon near normal incidence), or any scene
@@ -488,7 +501,10 @@ def reference_target_scene(
     if material is None:
         rho = float(reflectance)
         material = DiffuseMaterial(reflectance=(rho, rho, rho))
-    return scene.model_validate({**scene.model_dump(), "material": _as_dict(material)})
+    doc = {**scene.model_dump(), "material": _as_dict(material)}
+    if size_m is not None:
+        doc["sample"] = {**doc["sample"], "size_m": float(size_m)}
+    return scene.model_validate(doc)
 
 
 def _as_dict(material) -> dict:

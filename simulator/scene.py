@@ -8,9 +8,9 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError, model_validator
 
-from acquisition.config import ConfigError, format_validation_error, load_config_data
+from plumbing.config import ConfigError, Strict, format_validation_error, load_config_data
 
 __all__ = [
     "Scene",
@@ -24,28 +24,27 @@ __all__ = [
     "RoughDielectricMaterial",
     "MeasuredMaterial",
     "ModelMaterial",
+    "TexturedMaterial",
     "LightSpec",
     "HolderSpec",
     "StrayLightSpec",
     "RenderSpec",
     "CameraSpec",
     "SensorSpec",
+    "GeometryTruth",
     "load_scene",
+    "world_scene",
 ]
 
 RGB = tuple[float, float, float]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class DiffuseMaterial(_Strict):
+class DiffuseMaterial(Strict):
     type: Literal["diffuse"] = "diffuse"
     reflectance: RGB = Field((0.5, 0.5, 0.5), description="albedo ρ per channel, f = ρ/π")
 
 
-class RoughConductorMaterial(_Strict):
+class RoughConductorMaterial(Strict):
     """Mitsuba `roughconductor`. alpha is the RMS slope m for Beckmann."""
 
     type: Literal["roughconductor"] = "roughconductor"
@@ -59,7 +58,7 @@ class RoughConductorMaterial(_Strict):
     specular_reflectance: RGB = (1.0, 1.0, 1.0)
 
 
-class RoughPlasticMaterial(_Strict):
+class RoughPlasticMaterial(Strict):
     type: Literal["roughplastic"] = "roughplastic"
     distribution: Literal["beckmann", "ggx"] = "beckmann"
     alpha: float = Field(0.1, gt=0, le=2)
@@ -68,7 +67,7 @@ class RoughPlasticMaterial(_Strict):
     ext_ior: float = Field(1.000277, ge=1)
 
 
-class PlasticMaterial(_Strict):
+class PlasticMaterial(Strict):
     """Mitsuba `plastic`: smooth dielectric coating (a delta lobe) over a diffuse base."""
 
     type: Literal["plastic"] = "plastic"
@@ -77,7 +76,7 @@ class PlasticMaterial(_Strict):
     ext_ior: float = Field(1.000277, ge=1)
 
 
-class ConductorMaterial(_Strict):
+class ConductorMaterial(Strict):
     """Mitsuba `conductor`: a smooth mirror (delta lobe; invisible to a point light)."""
 
     type: Literal["conductor"] = "conductor"
@@ -87,7 +86,7 @@ class ConductorMaterial(_Strict):
     specular_reflectance: RGB = (1.0, 1.0, 1.0)
 
 
-class RoughDielectricMaterial(_Strict):
+class RoughDielectricMaterial(Strict):
     """Mitsuba `roughdielectric` (reflection and transmission through a rough interface)."""
 
     type: Literal["roughdielectric"] = "roughdielectric"
@@ -97,7 +96,7 @@ class RoughDielectricMaterial(_Strict):
     ext_ior: float = Field(1.000277, ge=1)
 
 
-class MeasuredMaterial(_Strict):
+class MeasuredMaterial(Strict):
     """Mitsuba `measured`: an RGL tensor ``.bsdf`` file (Dupuy & Jakob 2018).
 
     A relative ``filename`` is resolved against the scene file's folder by `load_scene`.
@@ -107,7 +106,7 @@ class MeasuredMaterial(_Strict):
     filename: str
 
 
-class ModelMaterial(_Strict):
+class ModelMaterial(Strict):
     """A `fitting.models` model wrapped as a Python Mitsuba BSDF (simulator.materials).
 
     ``parameters`` maps each model parameter to a scalar or an (R, G, B) triple; ``options``
@@ -120,7 +119,39 @@ class ModelMaterial(_Strict):
     parameters: dict[str, float | RGB] = Field(default_factory=dict)
 
 
-class BlendMaterial(_Strict):
+class TexturedMaterial(Strict):
+    """A spatially varying Lambert + Beckmann lobe (F ≡ 1): per texel of a ``texels`` × ``texels``
+    grid over the sample, kd (per channel), ks and m drawn once from ``seed``.
+
+    Rendered (simulator.texture) as Mitsuba bitmaps with nearest lookup in
+    blendbsdf(diffuse ρ, roughconductor α): weight = ks, ρ = kd/(1 − ks), α = m, so per texel
+    f = kd/π + ks·lobe_m exactly as for `BlendMaterial` (simulator.truth). kd is uniform in
+    ``kd_range``, ks uniform in ``ks_range``, m log-uniform in ``m_range``. Texel (ix, iy) covers
+    x ∈ [−s/2 + ix·t, −s/2 + (ix+1)·t) (t = s/texels), y likewise; its index is iy·texels + ix.
+    """
+
+    type: Literal["textured"] = "textured"
+    texels: int = Field(32, ge=1, le=1024, description="texels per side of the sample")
+    kd_range: tuple[RGB, RGB] = ((0.10, 0.10, 0.10), (0.60, 0.50, 0.40))
+    ks_range: tuple[float, float] = (0.05, 0.40)
+    m_range: tuple[float, float] = (0.10, 0.40)
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _physical(self) -> TexturedMaterial:
+        lo_ks, hi_ks = self.ks_range
+        if not 0 <= lo_ks <= hi_ks < 1:
+            raise ValueError("ks_range must satisfy 0 ≤ low ≤ high < 1")
+        if not 0 < self.m_range[0] <= self.m_range[1] <= 2:
+            raise ValueError("m_range must satisfy 0 < low ≤ high ≤ 2")
+        lo, hi = np.asarray(self.kd_range[0]), np.asarray(self.kd_range[1])
+        # ρ = kd/(1 − ks) is the diffuse albedo Mitsuba renders: it must stay ≤ 1.
+        if np.any(lo < 0) or np.any(hi < lo) or np.any(hi / (1.0 - hi_ks) > 1.0):
+            raise ValueError("kd_range must satisfy 0 ≤ low ≤ high and high/(1 − ks_high) ≤ 1")
+        return self
+
+
+class BlendMaterial(Strict):
     """Mitsuba `blendbsdf`: f = (1 − weight)·first + weight·second."""
 
     type: Literal["blend"] = "blend"
@@ -138,17 +169,18 @@ Material = Annotated[
     | RoughDielectricMaterial
     | MeasuredMaterial
     | ModelMaterial
+    | TexturedMaterial
     | BlendMaterial,
     Field(discriminator="type"),
 ]
 BlendMaterial.model_rebuild()
 
 
-class SampleSpec(_Strict):
+class SampleSpec(Strict):
     size_m: float = Field(0.05, gt=0, description="side of the square flat sample")
 
 
-class LightSpec(_Strict):
+class LightSpec(Strict):
     """The lamp, aimed at the sample centre.
 
     point  isotropic radiant intensity ``intensity_W_sr``.
@@ -183,7 +215,7 @@ class LightSpec(_Strict):
         return tuple(float(i) / a for i in self.intensity_W_sr)  # type: ignore[return-value]
 
 
-class HolderSpec(_Strict):
+class HolderSpec(Strict):
     """A raised square rim around the sample: four walls that can shadow the sample at grazing
     light and, if not black, reflect light onto it (interreflection → the path integrator)."""
 
@@ -193,14 +225,14 @@ class HolderSpec(_Strict):
     reflectance: RGB = Field((0.0, 0.0, 0.0), description="diffuse albedo; 0 = black holder")
 
 
-class StrayLightSpec(_Strict):
+class StrayLightSpec(Strict):
     """Ambient stray light: a constant environment of radiance L_amb (W m⁻² sr⁻¹) over the whole
     sphere. On a Lambertian sample it adds exactly ρ·L_amb of radiance (∫ ρ/π L cos θ dω)."""
 
     radiance_W_m2_sr: RGB = Field((0.01, 0.01, 0.01))
 
 
-class RenderSpec(_Strict):
+class RenderSpec(Strict):
     """Rendering quality knobs the planner turns into spp and path depth."""
 
     target_rel_noise: float = Field(
@@ -213,14 +245,14 @@ class RenderSpec(_Strict):
     )
 
 
-class CameraSpec(_Strict):
+class CameraSpec(Strict):
     resolution: tuple[int, int] = (64, 64)
     fov_deg: float = Field(12.0, gt=0, lt=170, description="horizontal field of view")
     f_number: float = Field(4.0, gt=0)
     format: Literal["exr", "dng"] = "exr"
 
 
-class SensorSpec(_Strict):
+class SensorSpec(Strict):
     """EMVA 1288 sensor: e = Poisson(QE·photons·(1+PRNU) + dark·t), DN = black + K·(e + read)."""
 
     pixel_pitch_m: float = Field(5e-6, gt=0)
@@ -237,9 +269,41 @@ class SensorSpec(_Strict):
     bayer: Literal["RGGB"] | None = None
     vignetting: bool = False
     noise: bool = True
+    # Response non-linearity, an instrument error: collected electrons e read as
+    # e·(1 + β·e/full_well), a gain that drifts by β from dark to full well. EMVA 1288
+    # datasheets give linearity errors of ~0.1–1 % for machine-vision sensors (β of the same
+    # order); 0 = perfectly linear, and the stage does not run.
+    nonlinearity: float = Field(0.0, ge=0, lt=0.5, description="β of e·(1 + β·e/full_well)")
 
 
-class Scene(_Strict):
+_AxisRole = Literal["light_theta", "light_phi", "camera_theta", "camera_phi", "sample_azimuth"]
+
+
+class GeometryTruth(Strict):
+    """The rig's true geometry where it differs from the rig file (a systematic error the lab
+    does not know), each applied by the world to the angles the servos' encoders report:
+
+    - `axis_zero_error_deg`: added to each axis' angle as the rig file's zero offsets compute it
+      (true = believed + error), e.g. a camera arm remounted 0.3° off;
+    - `backlash_deg`: the play b between the servo horn and the arm (the encoder sits on the
+      servo's output shaft, so it cannot see it): the arm lags the direction it last moved by
+      b/2 (true = believed − sign(last move)·b/2). Dynamixel X-series gears: ~0.25–0.35°
+      (ROBOTIS e-Manual, "backlash" in each model's spec table);
+    - `compliance_deg`: sag of an elevation arm under its own weight, ∝ the gravity torque, i.e.
+      ∝ sin of the arm's angle from vertical: true θ = believed θ + c·sin θ (c = the sag when
+      horizontal; a 0.5 m aluminium arm on an XM430 sags ~0.1–0.3°). Elevation roles only.
+
+    Encoder quantisation (4096 ticks per revolution) needs no setting: the emulated servos
+    position and report whole ticks (0.088°/tick), as the real ones do."""
+
+    axis_zero_error_deg: dict[_AxisRole, float] = Field(default_factory=dict)
+    backlash_deg: dict[_AxisRole, float] = Field(default_factory=dict)
+    compliance_deg: dict[Literal["light_theta", "camera_theta"], float] = Field(
+        default_factory=dict
+    )
+
+
+class Scene(Strict):
     name: str = "scene"
     material: Material = Field(default_factory=DiffuseMaterial)
     sample: SampleSpec = Field(default_factory=SampleSpec)
@@ -249,14 +313,27 @@ class Scene(_Strict):
     holder: HolderSpec | None = None
     stray_light: StrayLightSpec | None = None
     render: RenderSpec = Field(default_factory=RenderSpec)
+    geometry: GeometryTruth = Field(default_factory=GeometryTruth)
+    # The reference target's true BRDF (what the lab's certificate describes); unset: a
+    # Lambertian of the rig file's certified albedo.
+    reference_target: Material | None = None
+    # Radiance of the flat-field source (integrating sphere port); unset: the level a lab
+    # would set for the flat exposure (half the full well on axis, SimCamera.flat_radiance).
+    flat_source_radiance_W_m2_sr: float | None = Field(None, gt=0)
     seed: int = 0
 
 
 def _resolve_material_paths(material, base: Path) -> None:
-    """Make relative ``measured`` filenames absolute (relative to the scene file), in place."""
+    """Make ``measured`` filenames absolute, in place: ``data:REL`` through the data resolver
+    (fitting.data_paths, honours $GONIO_DATA), any other relative path against the scene file."""
     if not isinstance(material, dict):
         return
     if material.get("type") == "measured" and isinstance(material.get("filename"), str):
+        from fitting.data_paths import SCHEME, resolve_data_uri
+
+        if material["filename"].startswith(SCHEME):
+            material["filename"] = resolve_data_uri(material["filename"])
+            return
         f = Path(material["filename"]).expanduser()
         if not f.is_absolute():
             material["filename"] = str((base / f).resolve())
@@ -271,7 +348,79 @@ def load_scene(path: str | Path) -> Scene:
     # code), with one-line errors for a missing, unreadable or malformed file.
     data = load_config_data(path)
     _resolve_material_paths(data.get("material"), path.parent)
+    _resolve_material_paths(data.get("reference_target"), path.parent)
     try:
         return Scene.model_validate(data)
     except ValidationError as err:
         raise ConfigError(format_validation_error(path, err, Scene)) from None
+
+
+def world_scene(scene: Scene, rig) -> Scene:  # noqa: ANN001 - acquisition.config.RigConfig
+    """The emulated world's truth for `rig`: what the scene states, and — for every camera,
+    sensor, sample and lamp quantity the scene leaves unstated — the rig file's description.
+
+    So by default the world is exactly what the lab believes it has; a value the scene states
+    that differs from the rig file is a systematic error the lab does not know about (what
+    calibration must then cope with, as on a real instrument). Only fields *set* in the scene
+    (pydantic's `model_fields_set`) count as stated.
+    """
+    cam, s = rig.camera, scene
+    camera_upd: dict = {}
+    if "resolution" not in s.camera.model_fields_set:
+        camera_upd["resolution"] = tuple(cam.resolution)
+    if "fov_deg" not in s.camera.model_fields_set:
+        fx = _rig_fx(rig)
+        w = (camera_upd.get("resolution") or s.camera.resolution)[0]
+        # Mitsuba's fov_axis="x" spans the full width: f_x = (W/2) / tan(fov/2).
+        camera_upd["fov_deg"] = float(np.degrees(2.0 * np.arctan((w / 2.0) / fx)))
+    if "f_number" not in s.camera.model_fields_set:
+        camera_upd["f_number"] = cam.f_number
+    if "format" not in s.camera.model_fields_set:
+        # What such a camera writes: a RAW mosaic as DNG, three linear values per pixel as EXR.
+        camera_upd["format"] = "dng" if cam.color_filter == "RGGB" else "exr"
+    sensor_upd: dict = {}
+    stated = s.sensor.model_fields_set
+    for key, value in (
+        ("pixel_pitch_m", cam.pixel_pitch_m),
+        ("quantum_efficiency", cam.quantum_efficiency),
+        ("wavelength_m", cam.wavelength_m),
+        ("gain_e_per_dn", cam.gain_e_per_dn),
+        ("black_level_dn", cam.black_level_dn),
+        ("read_noise_e", cam.read_noise_e),
+        ("adc_bits", cam.bit_depth),
+    ):
+        if key not in stated and value is not None:
+            sensor_upd[key] = value
+    if "bayer" not in stated:
+        if cam.color_filter not in ("RGGB", "rgb"):
+            raise ConfigError(
+                f"camera.color_filter {cam.color_filter!r}: the simulated camera emulates an "
+                "RGGB mosaic or an rgb sensor"
+            )
+        sensor_upd["bayer"] = "RGGB" if cam.color_filter == "RGGB" else None
+    if "full_well_e" not in stated:
+        # The lab's white level is the clip it measured; the simulated sensor clips where its
+        # well is full, 6 σ_read above that level (simulator.camera.SimCamera.clip_level_dn).
+        gain = sensor_upd.get("gain_e_per_dn", s.sensor.gain_e_per_dn)
+        black = sensor_upd.get("black_level_dn", s.sensor.black_level_dn)
+        read = sensor_upd.get("read_noise_e", s.sensor.read_noise_e)
+        sensor_upd["full_well_e"] = (cam.white_level_dn - black) * gain + 6.0 * read
+    update: dict = {
+        "camera": s.camera.model_copy(update=camera_upd),
+        "sensor": s.sensor.model_copy(update=sensor_upd),
+    }
+    if "size_m" not in s.sample.model_fields_set:
+        update["sample"] = s.sample.model_copy(update={"size_m": rig.sample.size_m})
+    if "intensity_W_sr" not in s.light.model_fields_set and rig.light.intensity_W_sr is not None:
+        update["light"] = s.light.model_copy(
+            update={"intensity_W_sr": tuple(rig.light.intensity_W_sr)}
+        )
+    return s.model_copy(update=update)
+
+
+def _rig_fx(rig) -> float:  # noqa: ANN001
+    if rig.calibration.intrinsics is not None:
+        from acquisition.config import load_intrinsics
+
+        return float(load_intrinsics(rig.calibration.intrinsics, rig.camera.resolution)["fx"])
+    return float(rig.camera.nominal_fx_px)

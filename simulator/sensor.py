@@ -11,6 +11,7 @@ colour channel:
 3. mean electrons               μ_e = QE · Φ · (1 + PRNU_map) + dark · t + DSNU_map
 4. shot noise                   e ~ Poisson(μ_e)              (only if ``spec.noise``)
 5. full well                    e = min(e, full_well)
+   non-linearity                e · (1 + β e/full_well)      (only if ``spec.nonlinearity``)
 6. read noise                   e + N(0, σ_read²)             (only if ``spec.noise``)
 7. ADC                          DN = clip(round(black + e / K⁻¹), 0, 2^bits − 1)
    with K⁻¹ = ``gain_e_per_dn`` (electrons per DN)
@@ -56,6 +57,7 @@ STAGES = (
     "dsnu",
     "shot_noise",
     "full_well",
+    "nonlinearity",
     "read_noise",
     "adc",
 )
@@ -131,6 +133,7 @@ def enabled_stages(spec: SensorSpec) -> list[str]:
         "dsnu": spec.dsnu_e > 0,
         "shot_noise": spec.noise,
         "full_well": True,
+        "nonlinearity": spec.nonlinearity > 0,
         "read_noise": spec.noise and spec.read_noise_e > 0,
         "adc": True,
     }
@@ -229,6 +232,9 @@ class Sensor:
             e = mu
         self._ran("full_well")
         e = np.minimum(e, s.full_well_e)
+        if s.nonlinearity > 0:
+            self._ran("nonlinearity")
+            e = e * (1.0 + s.nonlinearity * e / s.full_well_e)
         if s.noise and s.read_noise_e > 0:
             self._ran("read_noise")
             e = e + self.rng.normal(0.0, s.read_noise_e, e.shape)

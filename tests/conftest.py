@@ -29,25 +29,27 @@ def configs() -> Path:
     return CONFIGS
 
 
-def find_shared_data() -> Path:
-    """The shared real-data directory: $GONIO_SHARED_DATA, else a `shared/data` beside the
-    clone or one of its parents (CI clones beside shared/), else /work/shared/data.
-    Missing data is a test failure, never a skip."""
-    candidates = []
-    if os.environ.get("GONIO_SHARED_DATA"):
-        candidates.append(Path(os.environ["GONIO_SHARED_DATA"]))
-    candidates += [p / "shared" / "data" for p in (REPO, *REPO.parents)]
-    candidates.append(Path("/work/shared/data"))
-    for c in candidates:
-        if (c / "SOURCES.md").is_file():
-            return c
-    pytest.fail(
-        "shared data not found (looked in "
-        + ", ".join(str(c) for c in candidates)
-        + "); set GONIO_SHARED_DATA to the shared/data directory"
-    )
+def data_file(relpath: str) -> Path:
+    """A real data file through the one resolver (fitting.data_paths: $GONIO_DATA, the
+    repository's data/, an installed wheel, the download cache). A shipped file that is missing
+    is a test failure, never a skip; a file not shipped for licence reasons (data/README.md)
+    skips with the command that fetches it."""
+    from fitting.data_paths import FETCHED, DataNotFound, find_data
+
+    try:
+        return find_data(relpath)
+    except DataNotFound as exc:
+        if relpath in FETCHED:
+            pytest.skip(str(exc))
+        pytest.fail(str(exc))
 
 
-@pytest.fixture
-def shared_data() -> Path:
-    return find_shared_data()
+def data_dir(group: str) -> Path:
+    """The folder holding a data group (``rgl_brdf``, ``calibration_chessboard``, …), found
+    through one of its files (see data_file)."""
+    from fitting.data_paths import FETCHED, manifest
+
+    files = sorted(p for p in {**manifest(), **FETCHED} if p.split("/", 1)[0] == group)
+    if not files:
+        pytest.fail(f"no data group {group!r} in data/SHA256SUMS or fitting.data_paths.FETCHED")
+    return data_file(files[0]).parent

@@ -21,7 +21,7 @@ from acquisition.rig import build_rig
 from acquisition.runner import _StopFlag, run_acquisition
 from acquisition.store import RunStore, RunStoreError
 from gonio.backends import prepare_backends
-from gonio.pipeline import acquire
+from gonio.pipeline import AcquireSpec, acquire
 
 REPO = Path(__file__).resolve().parent.parent
 SMALL_PLAN = PlanConfig(
@@ -42,7 +42,7 @@ def test_interrupted_run_resumes_to_the_same_set(tmp_path: Path) -> None:
     out = tmp_path / "run"
     # First session: request a stop after 5 captures (what SIGINT does).
     flag = _StopFlag()
-    res = acquire(None, None, out, rig_config=rig_cfg, plan_config=SMALL_PLAN, progress=False)
+    res = acquire(out, AcquireSpec(rig=rig_cfg, plan=SMALL_PLAN, progress=False))
     assert res.outcome.complete  # a full reference run first, in another directory
     ref = {(c.pose_index, c.bracket_index) for c in RunStore.open(out).captures()}
 
@@ -82,10 +82,10 @@ def test_interrupted_run_resumes_to_the_same_set(tmp_path: Path) -> None:
 
 def test_complete_run_is_refused(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    acquire(None, None, out, rig_config=_rig(), plan_config=SMALL_PLAN, progress=False)
+    acquire(out, AcquireSpec(rig=_rig(), plan=SMALL_PLAN, progress=False))
     before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
     with pytest.raises(RunStoreError, match="complete"):
-        acquire(None, None, out, rig_config=_rig(), plan_config=SMALL_PLAN, progress=False)
+        acquire(out, AcquireSpec(rig=_rig(), plan=SMALL_PLAN, progress=False))
     after = {
         p: p.stat().st_mtime_ns for p in out.rglob("*") if not p.name.endswith(("-wal", "-shm"))
     }
@@ -106,6 +106,7 @@ def test_kill_9_then_resume_via_cli(tmp_path: Path) -> None:
         "--out",
         str(out),
         "--no-progress",
+        "--yes",  # the demo plan's calibration phases: the operator has prepared them
     ]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     # Wait until some frames exist, then kill without warning.

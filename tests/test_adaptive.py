@@ -25,7 +25,7 @@ from acquisition.config import PlanConfig
 from acquisition.runlog import read_log
 from acquisition.store import RunStore
 from calibration.reduce import ReduceOptions, reduce_run
-from gonio.pipeline import acquire
+from gonio.pipeline import AcquireSpec, acquire
 
 REPO = Path(__file__).resolve().parent.parent
 THETA_I = (25.0, 45.0)
@@ -113,7 +113,8 @@ def test_two_phase_run_killed_in_phase_2_resumes_the_frozen_refinement(tmp_path:
     assert int(store.meta("refine_offset")) == N_PRESCAN
     store.close()
 
-    res = acquire(None, None, out, progress=False, announce=False)
+    rig = REPO / "configs" / "rigs" / "sim.toml"  # resuming needs the trusted rig file
+    res = acquire(out, AcquireSpec(rig=rig, progress=False, announce=False))
     assert res.outcome.complete, res.outcome.reason
     store = RunStore.open(out)
     assert store.meta("refine_plan") == frozen  # not re-decided
@@ -178,14 +179,8 @@ def test_lab_estimate_bounds_phase_2(tmp_path: Path) -> None:
     scene = load_scene(_glossy_scene(tmp_path))
     rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
     res = acquire(
-        None,
-        None,
         tmp_path / "run",
-        rig_config=rig,
-        plan_config=plan,
-        scene_config=scene,
-        progress=False,
-        announce=False,
+        AcquireSpec(rig=rig, plan=plan, scene=scene, progress=False, announce=False),
     )
     assert res.outcome.complete, res.outcome.reason
     est = res.extra["lab_estimate"]

@@ -29,7 +29,7 @@ from acquisition.kinematics import Kinematics
 from acquisition.store import RunStore
 from calibration.decode import decode_frame
 from calibration.geometry import Intrinsics, pixel_geometry
-from gonio.pipeline import acquire
+from gonio.pipeline import AcquireSpec, acquire
 
 REPO = Path(__file__).resolve().parent.parent
 AE = AutoExposureConfig(start_s=0.002, min_s=1e-4, max_s=0.5, ratio=4.0, max_brackets=16)
@@ -144,7 +144,7 @@ def test_sim_run_every_pose_has_an_unsaturated_frame_and_enough_signal(tmp_path:
         auto_exposure=ae,
     )
     out = tmp_path / "run"
-    res = acquire(None, None, out, rig_config=rig, plan_config=plan, progress=False)
+    res = acquire(out, AcquireSpec(rig=rig, plan=plan, progress=False))
     assert res.outcome.complete, res.outcome.reason
     store = RunStore.open(out)
     cam = store.run_config()["camera"]

@@ -9,22 +9,32 @@ calibration code under test (decode, darks, flat, HDR merge, irradiance equation
 
 from __future__ import annotations
 
+import sqlite3
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from acquisition.config import PlanConfig
+from acquisition.config import PlanConfig, load_rig
+from acquisition.operator import AutoOperator
 from calibration.darks import calibration_frames
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting.directions import spherical_to_vector
 from fitting.samples import Flags
-from gonio.pipeline import acquire
+from gonio.pipeline import AcquireSpec, acquire
 from simulator.render import Renderer
-from simulator.scene import load_scene
+from simulator.scene import load_scene, world_scene
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE = REPO / "configs" / "scenes" / "raw.toml"
+RIG = REPO / "configs" / "rigs" / "sim.toml"
+
+
+def _world():
+    """The emulated world the run renders: the scene completed by the rig file's description."""
+    return world_scene(load_scene(SCENE), load_rig(RIG))
+
+
 EXPOSURES_S = [0.002, 0.016]
 FLAT_EXPOSURE_S = 0.016
 
@@ -41,22 +51,18 @@ def raw_run(tmp_path_factory: pytest.TempPathFactory):
             "delta_phi_deg": [180.0, 120.0, 60.0],
             "exposures_s": EXPOSURES_S,
             "order": "nearest",
+            # Master darks per exposure and a flat at the longest, taken as the run's first
+            # phases with the same (simulated) camera body, as a lab shoots them.
+            "calibration": {"dark": {}, "flat": {}},
         }
     )
     res = acquire(
-        REPO / "configs" / "rigs" / "sim.toml",
-        None,
-        out,
-        scene_path=SCENE,
-        progress=False,
-        plan_config=plan,
+        out, AcquireSpec(rig=RIG, scene=SCENE, progress=False, plan=plan, operator=AutoOperator())
     )
     assert res.outcome.complete
-    # acquire() recorded master darks (per exposure) and a flat before the first pose, with the
-    # same simulated camera body, as a lab shoots them with the camera that takes the data.
     assert {e["exposure_s"] for e in calibration_frames(out, "dark")} == set(EXPOSURES_S)
     assert {e["exposure_s"] for e in calibration_frames(out, "flat")} == {FLAT_EXPOSURE_S}
-    renderer = Renderer(load_scene(SCENE))
+    renderer = Renderer(_world())
     return out, renderer
 
 
@@ -99,6 +105,10 @@ def test_without_flat_and_darks_the_vignetting_shows(raw_run, tmp_path) -> None:
     run, renderer = raw_run
     bare = tmp_path / "bare"
     shutil.copytree(run, bare, ignore=shutil.ignore_patterns("calibration"))
+    # The same run as if its plan had no calibration phases: their rows leave the manifest.
+    with sqlite3.connect(bare / "manifest.sqlite") as db:
+        db.execute("DELETE FROM calibration_captures")
+        db.execute("DELETE FROM calibration_takes")
     table = reduce_run(bare, ReduceOptions(bin_px=2, mode="center"), out=tmp_path / "s.parquet")
     sel = ((table.flags & Flags.SATURATED) == 0) & (table.f / table.sigma > 50)
     z = (table.f[sel] - _truth(table, renderer)[sel]) / table.sigma[sel]
@@ -117,7 +127,7 @@ def test_master_darks_match_the_sensor_spec(raw_run) -> None:
     from calibration.darks import load_darks
 
     run, _ = raw_run
-    s = load_scene(SCENE).sensor
+    s = _world().sensor
     darks = load_darks(run)
     assert sorted(darks.masters) == EXPOSURES_S
     for t, m in darks.masters.items():
@@ -151,7 +161,7 @@ def test_flat_field_is_cos4_times_prnu(raw_run) -> None:
         Intrinsics.from_description(cam),
     )
     ratio = flat.gain / cos4_vignetting(flat.gain.shape, renderer.intrinsics)
-    prnu = load_scene(SCENE).sensor.prnu
+    prnu = _world().sensor.prnu
     shot = float(np.sqrt(np.mean(flat.rel_var)))
     # Mean of 4096 PRNU draws: ±0.005/64 ≈ 8e-5; allow 5e-4.
     assert abs(ratio.mean() - 1.0) < 5e-4

@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import find_shared_data
+from conftest import data_dir
 
 from calibration.camera_model import (
     RESULT_KEYS,
@@ -44,10 +44,6 @@ REF_RMS = 3.9259098975581364e-01
 CHARUCO = "charuco:8x6:0.03:0.022:DICT_5X5_100"
 FX, FY, CX, CY, W, H = 800.0, 800.0, 322.0, 238.0, 640, 480
 DIST = (-0.1, 0.0, 0.0, 0.0, 0.0)
-
-
-def shared_data_dir() -> Path:
-    return find_shared_data()
 
 
 def rotation_xyz_deg(ax: float, ay: float, az: float) -> np.ndarray:
@@ -158,7 +154,7 @@ def test_bad_board_spec_is_a_one_line_error_naming_the_form(spec):
 
 
 def test_opencv_chessboard_set_reproduces_published_calibration():
-    paths = sorted((shared_data_dir() / "calibration_chessboard").glob("left*.jpg"))
+    paths = sorted(data_dir("calibration_chessboard").glob("left*.jpg"))
     assert len(paths) == 13, f"expected OpenCV's 13 left*.jpg images, found {len(paths)}"
     res = calibrate_images(paths, parse_board("chessboard:9x6:0.025"), fix_aspect=True)
     assert tuple(res) == RESULT_KEYS
@@ -175,7 +171,7 @@ def test_opencv_chessboard_set_reproduces_published_calibration():
 
 
 def test_unreadable_image_is_skipped_with_a_counted_warning(tmp_path):
-    paths = sorted((shared_data_dir() / "calibration_chessboard").glob("left*.jpg"))[:4]
+    paths = sorted(data_dir("calibration_chessboard").glob("left*.jpg"))[:4]
     bad = tmp_path / "broken.jpg"
     bad.write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
     with pytest.warns(UserWarning, match=r"skipped 1 of 5 images: broken\.jpg"):
@@ -186,7 +182,7 @@ def test_unreadable_image_is_skipped_with_a_counted_warning(tmp_path):
 
 
 def test_fewer_than_three_views_is_a_one_line_error(tmp_path):
-    paths = sorted((shared_data_dir() / "calibration_chessboard").glob("left*.jpg"))[:2]
+    paths = sorted(data_dir("calibration_chessboard").glob("left*.jpg"))[:2]
     blank = tmp_path / "blank.png"
     cv2.imwrite(str(blank), np.full((480, 640), 128, np.uint8))  # readable, no board
     with pytest.warns(UserWarning, match="skipped 1 of 3"):

@@ -222,12 +222,14 @@ def test_per_channel_roughness_wins_when_channels_differ(tmp_path: Path) -> None
     """Mitsuba data whose R, G, B lobes have m = 0.1, 0.15, 0.2: the per-channel-m fit must
     beat the shared-m fit by many SE of the pointwise ELPD difference."""
     from fitting.compare import candidates, run_comparison
+    from fitting.fit import FitOptions
     from fitting.samples import read_samples
 
     table = read_samples(_mitsuba_samples(tmp_path / "s.parquet", alphas=(0.1, 0.15, 0.2)))
     opts = {"shadowing": "smith-rational", "fresnel": "none"}
     cands = candidates("torrance-sparrow", opts, ("m",), compare_shared=True)
-    ranked, results = run_comparison(table, cands, out_dir=tmp_path, mcmc=False, n_starts=2)
+    base = FitOptions(mcmc=False, n_starts=2)
+    ranked, results = run_comparison(table, cands, base, out_dir=tmp_path)
     assert [r.label for r in ranked] == ["torrance-sparrow-per-channel", "torrance-sparrow"]
     assert ranked[1].d_elpd < -5 * ranked[1].d_se
     assert ranked[0].shared == [] and ranked[1].shared == ["m"]

@@ -7,9 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from acquisition.config import ConfigError, load_plan, load_rig
+from acquisition.config import load_plan, load_rig
 from acquisition.kinematics import Unreachable
 from acquisition.plans import build_plan
+from plumbing.config import ConfigError
 
 
 def _write(tmp_path: Path, name: str, text: str) -> Path:
@@ -19,7 +20,9 @@ def _write(tmp_path: Path, name: str, text: str) -> Path:
 
 
 def _rig_text(configs: Path) -> str:
-    return (configs / "rigs" / "sim.toml").read_text()
+    """sim.toml with its relative file paths made absolute, so a copy elsewhere loads."""
+    text = (configs / "rigs" / "sim.toml").read_text()
+    return text.replace('"sim-camera.json"', f'"{configs / "rigs" / "sim-camera.json"}"')
 
 
 def test_shipped_configs_load(configs: Path) -> None:

@@ -78,3 +78,25 @@ def test_demo_samples_are_absolute_and_valid(demo_run: Path) -> None:
     assert not table.relative
     assert set(table.channels) == {"R", "G", "B"}
     assert (table.sigma > 0).all()
+
+
+def test_demo_calibration_comes_from_the_run_phases_and_the_rig_file(demo_run: Path) -> None:
+    """The demo is a lab run on emulated devices: its darks, flat and reference-target frames
+    were recorded by the plan's calibration phases, and calibration used them together with the
+    rig file's camera and sample (issue 14)."""
+    import tomllib
+
+    from acquisition.config import load_plan, load_rig
+
+    store = RunStore.open(demo_run)
+    kinds = {r.kind for r in store.calibration_captures()}
+    assert kinds == {"dark", "flat", "reference"}
+    plan = load_plan(REPO / "configs" / "plans" / "demo.toml")
+    assert len(store.calibration_captures("dark")) == plan.calibration.dark.count * 2
+    rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
+    doc = tomllib.loads((demo_run / "run.toml").read_text())
+    assert doc["sample"]["size_m"] == rig.sample.size_m
+    assert doc["camera"]["white_level_dn"] == rig.camera.white_level_dn
+    meta = json.loads(read_samples(demo_run / "samples.parquet").metadata["gonio.calibration"])
+    assert meta["radiometry"] == "reference"
+    assert meta["dark"] is not None and meta["flat"] == {"frames": plan.calibration.flat.count}

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from fitting import models
-from fitting.fit import fit_samples
+from fitting.fit import FitOptions, fit_samples
 from fitting.priors import ParameterSpace
 from fitting.result import FitResultError, read_fit
 from fitting.samples import Flags, SampleTable
@@ -30,6 +30,11 @@ TOP = {
 PARAM = {"unit", "map", "median", "p16", "p84", "p2.5", "p97.5"}
 DIAG = {"tau", "ess", "acceptance", "converged", "rhat", "stop_reason"}
 GOOD = {"chi2", "dof", "chi2_red", "aic", "bic", "n"}
+# Optional since issue 18 (readers accept files without them): the verdicts and what
+# "converged" rests on.
+OPTIONAL_TOP = {"verdicts"}
+OPTIONAL_DIAG = {"converged_because", "failed_criteria", "budget"}  # budget: fitting.budget notes
+VERDICT = {"name", "status", "reason", "advice"}
 
 
 def lambert_table(rng, n=200, kd=None, mismatch=0.0, rel_noise=0.01) -> SampleTable:
@@ -51,18 +56,22 @@ def lambert_table(rng, n=200, kd=None, mismatch=0.0, rel_noise=0.01) -> SampleTa
 def test_json_contract_and_roundtrip(tmp_path):
     rng = np.random.default_rng(0)
     table = lambert_table(rng)
-    res = fit_samples(table, "lambert", steps=600, walkers=16, seed=1, out_dir=tmp_path)
+    res = fit_samples(
+        table, FitOptions(model="lambert", steps=600, walkers=16, seed=1), out_dir=tmp_path
+    )
     path = tmp_path / "fit-lambert.json"
     assert path.exists() and (tmp_path / "fit-lambert.h5").exists()
     text = path.read_text()
     assert "NaN" not in text and "Infinity" not in text  # strict JSON
     d = json.loads(text)
-    assert set(d) == TOP
+    assert set(d) == TOP | OPTIONAL_TOP
+    for v in d["verdicts"]:
+        assert set(v) == VERDICT and v["status"] in ("ok", "warning", "fail")
     assert set(d["parameters"]) == {"kd_R", "kd_G", "discrepancy"}
     for p in d["parameters"].values():
         assert set(p) == PARAM
         assert p["p2.5"] <= p["p16"] <= p["median"] <= p["p84"] <= p["p97.5"]
-    assert set(d["diagnostics"]) == DIAG
+    assert set(d["diagnostics"]) == DIAG | OPTIONAL_DIAG
     for key in ("tau", "ess", "rhat"):
         assert set(d["diagnostics"][key]) == set(d["parameters"])
     assert set(d["goodness"]) == GOOD
@@ -85,12 +94,12 @@ def test_json_contract_and_roundtrip(tmp_path):
 def test_laplace_without_mcmc_and_discrepancy_reports_mismatch():
     rng = np.random.default_rng(1)
     table = lambert_table(rng, n=400, mismatch=0.2, rel_noise=0.001)
-    res = fit_samples(table, "lambert", mcmc=True, steps=1500, walkers=16, seed=2)
+    res = fit_samples(table, FitOptions(model="lambert", mcmc=True, steps=1500, walkers=16, seed=2))
     # The fitted fractional discrepancy must report the 0.2/√2 ≈ 0.141 RMS mismatch; its
     # ML estimate has relative sd ≈ 1/√(2n) ≈ 2.5%, so ±15% is a wide but failing band.
     s = res.parameters["discrepancy"]["median"]
     assert s == pytest.approx(0.2 / np.sqrt(2), rel=0.15)
-    lap = fit_samples(table, "lambert", mcmc=False, discrepancy=False, seed=2)
+    lap = fit_samples(table, FitOptions(model="lambert", mcmc=False, discrepancy=False, seed=2))
     assert lap.diagnostics["stop_reason"] == "no_mcmc" and lap.diagnostics["converged"] is False
     p = lap.parameters["kd_R"]
     # Without the discrepancy term the Laplace interval is the overconfident one: far
@@ -99,7 +108,7 @@ def test_laplace_without_mcmc_and_discrepancy_reports_mismatch():
     assert (p["p84"] - p["p16"]) < 0.2 * (q["p84"] - q["p16"])
     # With the discrepancy on, the Laplace interval is inflated by χ²/dof and lands near the
     # MCMC one (both describe ~14% scatter per sample; weights differ slightly: factor 2).
-    lap2 = fit_samples(table, "lambert", mcmc=False, seed=2)
+    lap2 = fit_samples(table, FitOptions(model="lambert", mcmc=False, seed=2))
     w2 = lap2.parameters["kd_R"]["p84"] - lap2.parameters["kd_R"]["p16"]
     assert 0.5 < w2 / (q["p84"] - q["p16"]) < 2.0
 
@@ -133,7 +142,7 @@ def test_censored_and_student_t_fits_run():
     flags[np.argsort(table.f)[-15:]] = Flags.SATURATED
     table.flags = flags
     for kw in ({"censor": True}, {"likelihood": "student-t"}):
-        res = fit_samples(table, "lambert", steps=400, walkers=16, seed=4, **kw)
+        res = fit_samples(table, FitOptions(model="lambert", steps=400, walkers=16, seed=4, **kw))
         p = res.parameters["kd_R"]
         assert abs(p["median"] - 0.6) < 5 * (p["p84"] - p["p16"]) / 2, (kw, p)
 
@@ -155,7 +164,9 @@ def test_two_ensembles_rhat_and_time_budget(tmp_path):
     rng = np.random.default_rng(5)
     table = lambert_table(rng, n=100)
     res = fit_samples(
-        table, "lambert", steps=800, walkers=16, seed=6, ensembles=2, out_dir=tmp_path
+        table,
+        FitOptions(model="lambert", steps=800, walkers=16, seed=6, ensembles=2),
+        out_dir=tmp_path,
     )
     d = res.to_dict()["diagnostics"]
     # Both ensembles sample the same posterior: R̂ across them ≈ 1 (≈ √(1 + τ/n) ≲ 1.05 for
@@ -164,7 +175,9 @@ def test_two_ensembles_rhat_and_time_budget(tmp_path):
     assert res.extras["mcmc"].chain.shape[1] == 32
     with h5py.File(tmp_path / "fit-lambert.h5") as h5:
         assert {"mcmc", "mcmc_1"} <= set(h5)
-    quick = fit_samples(table, "lambert", steps=100_000, walkers=16, seed=6, time_budget_s=0.0)
+    quick = fit_samples(
+        table, FitOptions(model="lambert", steps=100_000, walkers=16, seed=6, time_budget_s=0.0)
+    )
     assert quick.diagnostics["stop_reason"] == "time_budget"
     assert quick.diagnostics["converged"] is False
 
@@ -172,15 +185,15 @@ def test_two_ensembles_rhat_and_time_budget(tmp_path):
 def test_fit_resume_continues_only_the_same_problem(tmp_path):
     rng = np.random.default_rng(7)
     table = lambert_table(rng, n=80)
-    kw = {"walkers": 16, "seed": 8, "out_dir": tmp_path, "moves": "stretch"}
-    fit_samples(table, "lambert", steps=200, **kw)
+    base = FitOptions(model="lambert", walkers=16, seed=8, moves="stretch")
+    fit_samples(table, base.replace(steps=200), out_dir=tmp_path)
     first = emcee.backends.HDFBackend(str(tmp_path / "fit-lambert.h5"), read_only=True)
     chain0 = first.get_chain()
-    second = fit_samples(table, "lambert", steps=400, **kw)
+    second = fit_samples(table, base.replace(steps=400), out_dir=tmp_path)
     after = emcee.backends.HDFBackend(str(tmp_path / "fit-lambert.h5"), read_only=True)
     assert after.iteration == second.extras["mcmc"].iterations == 400
     np.testing.assert_array_equal(after.get_chain()[:200], chain0)
     # Different data → different fingerprint → a fresh chain, not a continuation.
     other = lambert_table(np.random.default_rng(9), n=80)
-    third = fit_samples(other, "lambert", steps=150, **kw)
+    third = fit_samples(other, base.replace(steps=150), out_dir=tmp_path)
     assert third.extras["mcmc"].iterations == 150

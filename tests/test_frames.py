@@ -7,6 +7,7 @@ import numpy as np
 import OpenEXR
 import pytest
 import rawpy
+from conftest import data_dir
 
 from calibration.decode import FrameError, decode_frame, demosaic_to_rgb, linear
 from simulator.frames import encode_capture, encode_dng, encode_exr
@@ -114,8 +115,9 @@ def test_decode_errors(tmp_path):
     assert issubclass(FrameError, ValueError)
 
 
-def test_real_files(shared_data):
-    camera_raw = shared_data / "camera_raw"
+def test_real_files():
+    # Not shipped (no licence stated): skipped with `gonio data fetch camera_raw` when absent.
+    camera_raw = data_dir("camera_raw")
     nef = camera_raw / "Nikon_uncompressed.nef"
     with pytest.raises(FrameError) as e:
         decode_frame(nef)

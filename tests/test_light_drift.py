@@ -14,7 +14,7 @@ import pytest
 from acquisition.config import PlanConfig, load_rig
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting.directions import spherical_to_vector
-from gonio.pipeline import acquire
+from gonio.pipeline import AcquireSpec, acquire
 from simulator.render import Renderer
 from simulator.scene import load_scene
 
@@ -39,16 +39,7 @@ def drifting_run(tmp_path_factory: pytest.TempPathFactory):
         exposures_s=(0.004,),
     )
     out = tmp_path_factory.mktemp("drift") / "run"
-    res = acquire(
-        None,
-        None,
-        out,
-        rig_config=rig,
-        plan_config=plan,
-        scene_config=scene,
-        progress=False,
-        announce=False,
-    )
+    res = acquire(out, AcquireSpec(rig=rig, plan=plan, scene=scene, progress=False, announce=False))
     assert res.outcome.complete
     return out, Renderer(scene)
 

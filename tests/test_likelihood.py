@@ -119,11 +119,11 @@ def test_censoring_and_exclusion_match_scipy():
     theta = np.array([0.41, 0.27])
     mu = np.array([{"R": 0.41, "G": 0.27}[c] / np.pi for c in t.channel])
     good = flags == 0
-    excl = Likelihood(model, t, space)
+    excl = Likelihood(model, t, space, censor=False)
     assert excl.log_prob(theta) == pytest.approx(
         stats.norm.logpdf(t.f[good], mu[good], t.sigma[good]).sum(), rel=1e-11
     )
-    cens = Likelihood(model, t, space, censor=True)
+    cens = Likelihood(model, t, space)  # censoring is the default (issue 18)
     sat = flags == Flags.SATURATED
     dark = flags == Flags.DARK
     expected = (

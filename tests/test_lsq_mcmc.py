@@ -10,10 +10,10 @@ import pytest
 
 from fitting import models
 from fitting.directions import spherical_to_vector
-from fitting.fit import fit_samples
+from fitting.fit import FitOptions, fit_samples
 from fitting.likelihood import Likelihood
 from fitting.lsq import fit_least_squares
-from fitting.mcmc import run_mcmc, split_rhat
+from fitting.mcmc import ChainFile, McmcOptions, run_mcmc, split_rhat
 from fitting.priors import ParameterSpace
 from fitting.samples import SampleTable
 
@@ -74,12 +74,14 @@ def test_lsq_and_mcmc_recover_truth_and_fisher_width():
     table = synthetic(m_true, 300, rng)
     res = fit_samples(
         table,
-        "torrance-sparrow",
-        {"fresnel": "none"},
-        discrepancy=False,
-        steps=4000,
-        walkers=32,
-        seed=3,
+        FitOptions(
+            model="torrance-sparrow",
+            model_options={"fresnel": "none"},
+            discrepancy=False,
+            steps=4000,
+            walkers=32,
+            seed=3,
+        ),
     )
     truth = {"m": m_true}
     for c in "RGB":
@@ -135,7 +137,7 @@ def test_emcee_wrapper_on_known_gaussian():
         return -0.5 * np.einsum("wi,ij,wj->w", d, prec, d)
 
     lo, hi = np.full(3, -50.0), np.full(3, 50.0)
-    res = run_mcmc(log_prob, mean + 0.1, bounds=(lo, hi), walkers=24, max_steps=6000, rng=5)
+    res = run_mcmc(log_prob, mean + 0.1, (lo, hi), McmcOptions(walkers=24, max_steps=6000), rng=5)
     flat = res.flat
     assert res.converged and res.stop_reason == "converged"
     # The mean's standard error is √(Σ_kk / ESS_k); 4 SE bounds (ESS from emcee's τ, which
@@ -187,24 +189,20 @@ def test_hdf_resume_continues_chain(tmp_path):
     first = run_mcmc(
         log_prob,
         np.zeros(2),
-        bounds=b,
-        walkers=8,
-        max_steps=120,
+        b,
+        McmcOptions(walkers=8, max_steps=120, chunk=60),
         rng=1,
-        backend_path=path,
-        chunk=60,
+        store=ChainFile(path),
     )
     assert first.iterations == 120
     stored = emcee.backends.HDFBackend(str(path), read_only=True).get_chain()
     second = run_mcmc(
         log_prob,
         np.zeros(2),
-        bounds=b,
-        walkers=8,
-        max_steps=300,
+        b,
+        McmcOptions(walkers=8, max_steps=300, chunk=60),
         rng=2,
-        backend_path=path,
-        chunk=60,
+        store=ChainFile(path),
     )
     assert second.iterations == 300
     after = emcee.backends.HDFBackend(str(path), read_only=True)
@@ -217,7 +215,12 @@ def test_hdf_resume_continues_chain(tmp_path):
     assert not np.allclose(after.get_chain()[120], 0, atol=1e-2)
     # A different ensemble shape resets the file instead of failing.
     third = run_mcmc(
-        log_prob, np.zeros(2), bounds=b, walkers=10, max_steps=50, rng=3, backend_path=path
+        log_prob,
+        np.zeros(2),
+        b,
+        McmcOptions(walkers=10, max_steps=50),
+        rng=3,
+        store=ChainFile(path),
     )
     assert third.iterations == 50
 
@@ -228,7 +231,8 @@ def test_seeded_runs_are_reproducible():
 
     b = (np.full(2, -10.0), np.full(2, 10.0))
     runs = [
-        run_mcmc(log_prob, np.zeros(2), bounds=b, walkers=8, max_steps=60, rng=s) for s in (4, 4, 5)
+        run_mcmc(log_prob, np.zeros(2), b, McmcOptions(walkers=8, max_steps=60), rng=s)
+        for s in (4, 4, 5)
     ]
     np.testing.assert_array_equal(runs[0].chain, runs[1].chain)
     assert not np.array_equal(runs[0].chain, runs[2].chain)
@@ -265,14 +269,16 @@ def _coverage(repeats: int, mcmc: bool) -> tuple[dict, dict]:
         table = _cover_table(np.random.default_rng(5000 + rep))
         res = fit_samples(
             table,
-            "torrance-sparrow",
-            {"fresnel": "none"},
-            discrepancy=False,
-            mcmc=mcmc,
-            walkers=12,
-            steps=500,
-            n_starts=4,
-            seed=rep,
+            FitOptions(
+                model="torrance-sparrow",
+                model_options={"fresnel": "none"},
+                discrepancy=False,
+                mcmc=mcmc,
+                walkers=12,
+                steps=500,
+                n_starts=4,
+                seed=rep,
+            ),
         )
         for k, v in COVER_TRUTH.items():
             p = res.parameters[k]

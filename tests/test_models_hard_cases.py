@@ -240,3 +240,29 @@ def test_fresnel_edge_cases_inside_the_model():
     assert rp < 1e-28
     g1 = none.evaluate({"kd": 0.0, "ks": 1, "m": 0.2}, wi_b, wo_b)[0]
     assert f_b == pytest.approx(g1 * rs / 2, rel=1e-12)
+
+
+# --- every registered model (fitting.registry), on the parameter sets its entry declares --------
+
+
+def _registry_cases():
+    from fitting import registry
+
+    out = []
+    for name in registry.names():
+        for options, sets in registry.entry(name).checks:
+            for i, p in enumerate(sets):
+                out.append(pytest.param(name, dict(options), dict(p), id=f"{name}-{i}-{options}"))
+    return out
+
+
+@pytest.mark.parametrize(("name", "options", "params"), _registry_cases())
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
+)
+@given(wi=dir_st, wo=dir_st, kd=st.sampled_from([0.0, 0.3]))
+def test_every_registered_model_stays_finite(name, options, params, wi, wo, kd):
+    # finite, non-negative, log f consistent, reciprocal to 1e-12 — for each model the registry
+    # holds, so a new model is covered by registering it
+    model = models.get(name, **options)
+    _check(model, dict(params, kd=kd) if "kd" in params else params, wi, wo)

@@ -14,12 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import find_shared_data
+from conftest import data_dir, data_file
 
 from acquisition.config import PlanConfig
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting import models
-from fitting.fit import fit_samples
+from fitting.fit import FitOptions, fit_samples
 from fitting.ngan import (
     COOK_TORRANCE_OPTIONS,
     NGAN_MODELS,
@@ -29,7 +29,7 @@ from fitting.ngan import (
     read_ngan_fits,
 )
 from fitting.samples import Flags
-from gonio.pipeline import acquire
+from gonio.pipeline import AcquireSpec, acquire
 from simulator.scene import ModelMaterial, load_scene
 
 REPO = Path(__file__).resolve().parent.parent
@@ -44,7 +44,7 @@ PUBLISHED_CT = {
 
 
 def _fits(model: str) -> dict:
-    return read_ngan_fits(find_shared_data() / "brdf_fits" / f"ngan_{model}.fit")
+    return read_ngan_fits(data_file(f"brdf_fits/ngan_{model}.fit"))
 
 
 def test_cook_torrance_published_values() -> None:
@@ -113,7 +113,7 @@ def test_cook_torrance_mapping_is_exact_for_all_86_materials() -> None:
 
 
 def test_scene_material_and_shipped_scenes(configs) -> None:
-    data = find_shared_data()
+    data = data_dir("brdf_fits").parent  # the data root holding brdf_fits/
     for name in ("nickel", "teflon"):
         mat = ngan_scene_material(name, data_dir=data)
         ModelMaterial.model_validate(mat)  # a valid scene [material] table
@@ -130,7 +130,7 @@ def test_scene_material_and_shipped_scenes(configs) -> None:
 
 
 def test_errors_are_clear(tmp_path) -> None:
-    data = find_shared_data()
+    data = data_dir("brdf_fits").parent  # the data root holding brdf_fits/
     with pytest.raises(KeyError, match="unobtainium"):
         ngan_scene_material("unobtainium", data_dir=data)
     with pytest.raises(ValueError, match="only 'cooktorrance'"):
@@ -162,18 +162,24 @@ def test_teflon_fit_recovers_ngan_roughness(tmp_path) -> None:
     )
     out = tmp_path / "run"
     res = acquire(
-        REPO / "configs" / "rigs" / "sim.toml",
-        None,
         out,
-        scene_path=REPO / "configs" / "scenes" / "ngan_teflon.toml",
-        progress=False,
-        plan_config=plan,
+        AcquireSpec(
+            rig=REPO / "configs" / "rigs" / "sim.toml",
+            scene=REPO / "configs" / "scenes" / "ngan_teflon.toml",
+            progress=False,
+            plan=plan,
+        ),
     )
     assert res.outcome.complete
     # bin 16: ~370 samples keep the MCMC short; "center" keeps each sample's exact directions.
     table = reduce_run(out, ReduceOptions(bin_px=16, mode="center"))
     assert np.all(table.flags & Flags.SATURATED == 0)
-    fit = fit_samples(table, "torrance-sparrow", COOK_TORRANCE_OPTIONS, steps=600, seed=3)
+    fit = fit_samples(
+        table,
+        FitOptions(
+            model="torrance-sparrow", model_options=COOK_TORRANCE_OPTIONS, steps=600, seed=3
+        ),
+    )
     p = fit.parameters
     m, f0 = PUBLISHED_CT["teflon"]
     assert p["m"]["p2.5"] <= m <= p["m"]["p97.5"], p["m"]
@@ -205,12 +211,10 @@ def test_nickel_sharp_metal_lobe_through_the_rig(tmp_path) -> None:
     scene_path = REPO / "configs" / "scenes" / "ngan_nickel.toml"
     out = tmp_path / "run"
     res = acquire(
-        REPO / "configs" / "rigs" / "sim.toml",
-        None,
         out,
-        scene_path=scene_path,
-        progress=False,
-        plan_config=plan,
+        AcquireSpec(
+            rig=REPO / "configs" / "rigs" / "sim.toml", scene=scene_path, progress=False, plan=plan
+        ),
     )
     assert res.outcome.complete
     table = reduce_run(out, ReduceOptions(bin_px=2, mode="center"))

@@ -2,7 +2,7 @@
 recovered within their 95 % intervals (issue 7, acceptance "Recovery").
 
 Truth: the published values (DESIGN §6: nickel m = 0.0424, F₀ = 0.733; teflon m = 0.139,
-F₀ = 0.0203), and the per-channel albedos of the same table (shared/data/brdf_fits, bbm's
+F₀ = 0.0203), and the per-channel albedos of the same table (data/brdf_fits, bbm's
 ngan_cooktorrance.fit) mapped by fitting.ngan (kd = ρ_d, ks = 4·albedo/π; the mapping is
 checked against an independent transcription of bbm's formula in tests/test_ngan.py).
 
@@ -35,10 +35,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import find_shared_data
+from conftest import data_file
 
 from fitting.directions import isotropic_gonio_directions
-from fitting.fit import fit_samples
+from fitting.fit import FitOptions, fit_samples
 from fitting.ngan import COOK_TORRANCE_OPTIONS, ngan_cook_torrance_parameters, read_ngan_fits
 from simulator.scene import load_scene
 from simulator.truth import direct_samples
@@ -51,7 +51,7 @@ REPEATS = 4
 @pytest.mark.parametrize("name", ["nickel", "teflon"])
 def test_ngan_published_fit_recovered(name: str, configs) -> None:
     m_true, f0_true = PUBLISHED[name]
-    entry = read_ngan_fits(find_shared_data() / "brdf_fits" / "ngan_cooktorrance.fit")[name]
+    entry = read_ngan_fits(data_file("brdf_fits/ngan_cooktorrance.fit"))[name]
     truth = ngan_cook_torrance_parameters(entry)
     assert (truth["m"], truth["f0"]) == (m_true, f0_true)  # the table is the published one
     scene = load_scene(configs / "scenes" / f"ngan_{name}.toml")
@@ -74,7 +74,12 @@ def test_ngan_published_fit_recovered(name: str, configs) -> None:
 
         # 500 steps × 32 walkers from the LSQ optimum (τ ≈ 20–50): ≥ 200 effective samples,
         # enough for 2.5/97.5 % percentiles to ~±0.1 posterior SD.
-        fit = fit_samples(table, "torrance-sparrow", COOK_TORRANCE_OPTIONS, steps=500, seed=seed)
+        fit = fit_samples(
+            table,
+            FitOptions(
+                model="torrance-sparrow", model_options=COOK_TORRANCE_OPTIONS, steps=500, seed=seed
+            ),
+        )
         p = fit.parameters
         assert fit.diagnostics["ess"]["m"] >= 200, fit.diagnostics
         for key, t in (("m", m_true), ("f0", f0_true)):

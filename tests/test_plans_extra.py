@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquisition.config import ConfigError, PlanConfig, load_plan, load_rig
+from acquisition.config import PlanConfig, load_plan, load_rig
 from acquisition.plans import build_plan, expand_grid, park_targets
+from plumbing.config import ConfigError
 from simulator.dxl.servo import profile_duration_s
 
 REPO = Path(__file__).resolve().parent.parent
@@ -194,10 +195,10 @@ def test_inplane_rig_rejects_out_of_plane_poses_with_the_reason() -> None:
 
 def test_inplane_plan_runs_on_the_inplane_rig(tmp_path: Path) -> None:
     from acquisition.store import RunStore
-    from gonio.pipeline import acquire
+    from gonio.pipeline import AcquireSpec, acquire
 
     cfg = PlanConfig(type="inplane", theta_i_deg=(30.0,), theta_o_deg=(0.0, 20.0, 50.0))
-    res = acquire(None, None, tmp_path / "run", rig_config=INPLANE, plan_config=cfg, progress=False)
+    res = acquire(tmp_path / "run", AcquireSpec(rig=INPLANE, plan=cfg, progress=False))
     assert res.outcome.complete, res.outcome.reason
     store = RunStore.open(tmp_path / "run")
     # 1 × (θ_o = 0 once + 2 × 2 sides) = 5 poses, 1 bracket; each recorded pose (from the

@@ -1,7 +1,7 @@
 """Calibration on real reflectance: measured RGL materials through the simulated rig.
 
-Four materials of the RGL database (Dupuy & Jakob 2018; shared/data/rgl_brdf, provenance in
-SOURCES.md) — white paper (near-Lambertian), a matte red wall paint, a satin vinyl film and a
+Four materials of the RGL database (Dupuy & Jakob 2018; data/rgl_brdf, provenance in
+data/README.md) — white paper (near-Lambertian), a matte red wall paint, a satin vinyl film and a
 metallic gold vinyl film (sharp lobe) — are rendered by Mitsuba's `measured` plugin, acquired
 with a small isotropic plan, reduced with mode="center" (one pixel per region with its own exact
 directions), and every sample is compared with Mitsuba's own BSDF at that sample's (ω_i, ω_o)
@@ -22,13 +22,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tomli_w
-from conftest import find_shared_data
+from conftest import data_dir, data_file
 
 from acquisition.config import PlanConfig
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting.directions import spherical_to_vector
 from fitting.samples import Flags
-from gonio.pipeline import acquire
+from gonio.pipeline import AcquireSpec, acquire
 from simulator.render import Renderer
 from simulator.scene import load_scene
 
@@ -54,11 +54,10 @@ PLAN = {
 
 
 def _scene_with_shared_data(name: str, tmp: Path) -> Path:
-    """The shipped scene with its .bsdf path pointed at the shared data actually found (the
-    shipped relative path assumes shared/ beside the checkout; $GONIO_SHARED_DATA may differ)."""
+    """The shipped scene with its .bsdf path pointed at the file the data resolver finds."""
     with open(SCENES / f"rgl_{name}.toml", "rb") as fh:
         spec = tomllib.load(fh)
-    bsdf = find_shared_data() / "rgl_brdf" / f"{name}_rgb.bsdf"
+    bsdf = data_file(f"rgl_brdf/{name}_rgb.bsdf")
     assert Path(spec["material"]["filename"]).name == bsdf.name
     spec["material"]["filename"] = str(bsdf)
     path = tmp / f"rgl_{name}.toml"
@@ -78,12 +77,10 @@ def rgl_run(tmp_path_factory: pytest.TempPathFactory):
             tmp = tmp_path_factory.mktemp(name)
             scene_path = _scene_with_shared_data(name, tmp)
             res = acquire(
-                RIG,
-                None,
                 tmp / "run",
-                scene_path=scene_path,
-                progress=False,
-                plan_config=PlanConfig.model_validate(PLAN),
+                AcquireSpec(
+                    rig=RIG, scene=scene_path, progress=False, plan=PlanConfig.model_validate(PLAN)
+                ),
             )
             assert res.outcome.complete
             table = reduce_run(tmp / "run", ReduceOptions(bin_px=2, mode="center"))
@@ -148,7 +145,7 @@ def test_gold_negative_published_values_are_handled(rgl_run) -> None:
 
 
 def test_shipped_rgl_scenes_load_and_name_their_data(configs) -> None:
-    data = find_shared_data() / "rgl_brdf"
+    data = data_dir("rgl_brdf")
     for name in RGL:
         scene = load_scene(configs / "scenes" / f"rgl_{name}.toml")
         assert scene.material.type == "measured"

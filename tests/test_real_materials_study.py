@@ -16,15 +16,19 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
+from fitting.heldout import heldout_errors, heldout_grid, lambert_floor
+from fitting.mcmc import ConvergenceTarget, convergence_verdict, extend_chain
 from fitting.samples import SampleTable
-from gonio import real_materials as rm
 from gonio.errors import UserError
+from gonio.studies import materials_document as doc
+from gonio.studies import materials_sweep as rm
+from gonio.studies.real_materials import run_real_materials
 
 # -- held-out grid and metrics ------------------------------------------------------------------
 
 
 def test_heldout_grid_avoids_every_measured_incidence_and_covers_the_solid_angle() -> None:
-    g = rm.heldout_grid()
+    g = heldout_grid()
     ti = np.degrees(np.unique(g.theta_i))
     for plan in (rm.FULL_PLAN, rm.QUICK_PLAN):
         # A pose's pixels see θ_i within ±3° of the nominal angle (5 cm sample at 0.5 m), so
@@ -45,11 +49,11 @@ def test_ngan_l2_matches_closed_form_integral() -> None:
     """Truth f = a + b cos θ_o, fit f̂ = a: Δ = −b cos θ_o cos θ_i. The weight sin θ_i sin θ_o
     separates, so E² = b² · [Σ_i sin θ_i cos² θ_i / Σ_i sin θ_i] · [∫ sin cos² / ∫ sin] over
     θ_o ∈ [0, T], with ∫₀ᵀ sin θ cos² θ dθ = (1 − cos³ T)/3 and ∫₀ᵀ sin θ dθ = 1 − cos T."""
-    g = rm.heldout_grid()
+    g = heldout_grid()
     a, b = 0.2, 0.05
     truth = a + b * np.cos(g.theta_o)
     fit = np.full_like(truth, a)
-    got = rm.heldout_errors(fit, truth, g.theta_i, g.weight)
+    got = heldout_errors(fit, truth, g.theta_i, g.weight)
     ti = np.radians(np.array([15.0, 25.0, 35.0, 45.0, 55.0, 65.0]))
     t_max = np.radians(80.0)
     factor_i = np.sum(np.sin(ti) * np.cos(ti) ** 2) / np.sum(np.sin(ti))
@@ -75,38 +79,38 @@ def test_metrics_pool_channels_and_scale() -> None:
     w = rng.uniform(0.1, 1.0, n)
     truth = rng.uniform(0.05, 2.0, (n, 3))
     # f̂ = (1 + ε) f in every channel ⇒ relative RMS is exactly |ε|, whatever the weights.
-    got = rm.heldout_errors(1.07 * truth, truth, theta_i, w)
+    got = heldout_errors(1.07 * truth, truth, theta_i, w)
     assert got["rel_rms"] == pytest.approx(0.07, rel=1e-12)
     # By hand: pooled over channels, weight per pair repeated per channel.
     d = (0.9 * truth - truth) * np.cos(theta_i)[:, None]
     by_hand = math.sqrt(np.sum(w[:, None] * d**2) / (3 * np.sum(w)))
-    assert rm.heldout_errors(0.9 * truth, truth, theta_i, w)["ngan_l2"] == pytest.approx(
+    assert heldout_errors(0.9 * truth, truth, theta_i, w)["ngan_l2"] == pytest.approx(
         by_hand, rel=1e-12
     )
 
 
 def test_lambert_floor_is_the_best_constant() -> None:
-    g = rm.heldout_grid(theta_o_step_deg=4.0, delta_phi_step_deg=10.0)
+    g = heldout_grid(theta_o_step_deg=4.0, delta_phi_step_deg=10.0)
     truth = 0.1 + 2.0 * np.exp(-(((g.theta_o - g.theta_i) / 0.2) ** 2)) * (g.delta_phi > 2.5)
 
     def err(level: float) -> float:
-        return rm.heldout_errors(np.full_like(truth, level), truth, g.theta_i, g.weight)["rel_rms"]
+        return heldout_errors(np.full_like(truth, level), truth, g.theta_i, g.weight)["rel_rms"]
 
     best = minimize_scalar(err, bounds=(0.0, 3.0), method="bounded", options={"xatol": 1e-10})
-    assert rm.lambert_floor(truth, g.theta_i, g.weight) == pytest.approx(best.fun, rel=1e-6)
+    assert lambert_floor(truth, g.theta_i, g.weight) == pytest.approx(best.fun, rel=1e-6)
 
 
 # -- convergence and verdicts -------------------------------------------------------------------
 
 
 def test_convergence_verdict_thresholds() -> None:
-    ok = rm.convergence_verdict({"kd": 1.009, "m": 1.002}, {"kd": 400.0, "m": 5000.0})
+    ok = convergence_verdict({"kd": 1.009, "m": 1.002}, {"kd": 400.0, "m": 5000.0})
     assert ok["converged"] and ok["rhat_worst"] == "kd" and ok["ess_worst"] == "kd"
-    assert not rm.convergence_verdict({"kd": 1.01}, {"kd": 1e4})["converged"]
-    assert not rm.convergence_verdict({"kd": 1.0}, {"kd": 399.9})["converged"]
-    bad = rm.convergence_verdict({"kd": 1.0, "m": float("nan")}, {"kd": 1e4, "m": 1e4})
+    assert not convergence_verdict({"kd": 1.01}, {"kd": 1e4})["converged"]
+    assert not convergence_verdict({"kd": 1.0}, {"kd": 399.9})["converged"]
+    bad = convergence_verdict({"kd": 1.0, "m": float("nan")}, {"kd": 1e4, "m": 1e4})
     assert not bad["converged"] and bad["rhat_worst"] == "m"
-    assert not rm.convergence_verdict({}, {})["converged"]  # no chain (LSQ only)
+    assert not convergence_verdict({}, {})["converged"]  # no chain (LSQ only)
 
 
 def _rows(errors: dict[str, float], loo_first: str, conv: dict[str, bool] | None = None):
@@ -133,7 +137,7 @@ def test_verdict_names_the_minimum_error_model(seed: int) -> None:
     errors = dict(zip(names, rng.uniform(0.01, 2.0, len(names)).tolist(), strict=True))
     best = min(errors, key=errors.get)
     loo_first = names[int(rng.integers(len(names)))]
-    text = rm.verdict(_rows(errors, loo_first))
+    text = doc.verdict(_rows(errors, loo_first))
     assert f"**{best}** fits best" in text
     for other in names:
         if other != best:
@@ -145,11 +149,11 @@ def test_verdict_names_the_minimum_error_model(seed: int) -> None:
 
 
 def test_verdict_lambert_wording_follows_the_rule() -> None:
-    close = rm.verdict(_rows({"lambert": 0.10, "phong": 0.06, "blinn-phong": 0.2}, "phong"))
+    close = doc.verdict(_rows({"lambert": 0.10, "phong": 0.06, "blinn-phong": 0.2}, "phong"))
     assert "close to the best" in close
-    far = rm.verdict(_rows({"lambert": 1.2, "phong": 0.4, "blinn-phong": 0.5}, "phong"))
+    far = doc.verdict(_rows({"lambert": 1.2, "phong": 0.4, "blinn-phong": 0.5}, "phong"))
     assert "the worst of all, 3.0× the best" in far and "close to the best" not in far
-    nc = rm.verdict(_rows({"lambert": 1.2, "phong": 0.4}, "phong", {"phong": False}))
+    nc = doc.verdict(_rows({"lambert": 1.2, "phong": 0.4}, "phong", {"phong": False}))
     assert "Not converged" in nc and "phong" in nc.split("Not converged")[1]
 
 
@@ -158,7 +162,7 @@ def test_verdict_flags_bound_and_overshoot_from_the_numbers() -> None:
     for r in rows:
         r["discrepancy_p84"] = 0.99 if r["model"] == "lambert" else 0.3
         r["rel_rms_lsq"] = 0.5 if r["model"] == "ts-ggx-smith" else r["rel_rms"]
-    text = rm.verdict(rows)
+    text = doc.verdict(rows)
     bound = text.split("prior bound for ")[1].split(":")[0]
     assert bound == "lambert"
     over = text.split("plain least-squares fit (")[1].split(")")[0]
@@ -169,7 +173,7 @@ def test_verdict_flags_bound_and_overshoot_from_the_numbers() -> None:
 def test_chain_extension_reaches_the_convergence_thresholds() -> None:
     """A Lambert fit stopped after 50 steps does not meet R̂ < 1.01 and ESS ≥ 400; the
     continuation must, and its summary must be the percentiles of the longer chain."""
-    from fitting.fit import fit_samples
+    from fitting.fit import FitOptions, fit_samples
 
     rng = np.random.default_rng(5)
     n = 300
@@ -185,13 +189,33 @@ def test_chain_extension_reaches_the_convergence_thresholds() -> None:
         sigma=sigma,
         flags=np.zeros(n, dtype=np.int32),
     )
-    fit = fit_samples(table, "lambert", walkers=12, steps=50, seed=2, n_starts=2)
-    before = rm.convergence_verdict(fit.diagnostics["rhat"], fit.diagnostics["ess"])
+    fit = fit_samples(table, FitOptions(model="lambert", walkers=12, steps=50, seed=2, n_starts=2))
+    before = convergence_verdict(fit.diagnostics["rhat"], fit.diagnostics["ess"])
     # ESS = (50 − 3τ)·12/τ < 400 for any τ ≥ 1.4 (emcee's τ on 2 parameters is ≫ that)
     assert not before["converged"]
-    cfg = rm.with_models(rm.RealMaterialsConfig.quick_config(), walkers=12, max_steps=20000)
-    rm._extend_chain(fit, cfg)
-    after = rm.convergence_verdict(fit.diagnostics["rhat"], fit.diagnostics["ess"])
+    # Continuing that very chain reaches the target (fitting.mcmc.extend_chain) ...
+    names = fit.extras["space"].names
+    ext = extend_chain(
+        fit.extras["mcmc"], fit.extras["likelihood"].log_prob, ConvergenceTarget(), 20000, 2
+    )
+    assert ext is not None and ext.iterations > 50
+    verdict = convergence_verdict(
+        dict(zip(names, ext.rhat, strict=True)), dict(zip(names, ext.ess, strict=True))
+    )
+    assert verdict["converged"], verdict
+    # ... and a fit asked for the target is summarised from its whole, extended chain.
+    fit = fit_samples(
+        table,
+        FitOptions(
+            model="lambert",
+            walkers=12,
+            steps=20000,
+            seed=2,
+            n_starts=2,
+            converge=ConvergenceTarget(rm.RHAT_MAX, rm.ESS_MIN),
+        ),
+    )
+    after = convergence_verdict(fit.diagnostics["rhat"], fit.diagnostics["ess"])
     assert after["converged"], after
     chain = fit.extras["mcmc"].flat
     space = fit.extras["space"]
@@ -242,36 +266,43 @@ def test_subsample_per_pose_keeps_every_pose_and_whole_regions() -> None:
 # -- bad input ------------------------------------------------------------------------------------
 
 
-def test_missing_shared_data_is_one_line_naming_where_it_looked(monkeypatch, tmp_path) -> None:
+def test_missing_data_is_one_line_naming_where_it_looked(monkeypatch, tmp_path) -> None:
+    from fitting import data_paths
+
     places = [tmp_path / "a" / "data", tmp_path / "b" / "data"]
-    monkeypatch.setattr(rm, "shared_data_candidates", lambda: places)
-    with pytest.raises(UserError) as exc:
-        rm.find_shared_data()
+    monkeypatch.setattr(data_paths, "data_roots", lambda: places)
+    with pytest.raises(FileNotFoundError) as exc:
+        rm._load_material_scene(rm.MATERIALS[0], seed=0)
     msg = str(exc.value)
     assert "\n" not in msg and all(str(p) in msg for p in places)
-    assert "GONIO_SHARED_DATA" in msg
+    assert "GONIO_DATA" in msg and "paper_white_rgb.bsdf" in msg
 
 
-def test_shared_data_env_comes_first(monkeypatch, tmp_path) -> None:
-    (tmp_path / "SOURCES.md").write_text("x")
-    monkeypatch.setenv("GONIO_SHARED_DATA", str(tmp_path))
-    assert rm.shared_data_candidates()[0] == tmp_path
-    assert rm.find_shared_data() == tmp_path
-    # A directory without SOURCES.md is skipped (the tests/conftest.py rule), not returned.
-    monkeypatch.setenv("GONIO_SHARED_DATA", str(tmp_path / "nothing"))
-    assert rm.find_shared_data() != tmp_path / "nothing"
+def test_data_env_comes_first(monkeypatch, tmp_path) -> None:
+    from fitting.data_paths import data_roots, find_data
+
+    (tmp_path / "rgl_brdf").mkdir()
+    (tmp_path / "rgl_brdf" / "paper_white_rgb.bsdf").write_bytes(b"x")
+    monkeypatch.setenv("GONIO_DATA", str(tmp_path))
+    assert data_roots()[0] == tmp_path
+    assert find_data("rgl_brdf/paper_white_rgb.bsdf") == tmp_path / "rgl_brdf/paper_white_rgb.bsdf"
+    # A $GONIO_DATA without the file falls through to the repository's own data/.
+    monkeypatch.setenv("GONIO_DATA", str(tmp_path / "nothing"))
+    found = find_data("rgl_brdf/paper_white_rgb.bsdf")
+    assert found.is_file() and not str(found).startswith(str(tmp_path))
 
 
-def test_cli_missing_shared_data_prints_one_line(monkeypatch, tmp_path, capsys) -> None:
+def test_cli_missing_data_prints_one_line(monkeypatch, tmp_path, capsys) -> None:
+    from fitting import data_paths
     from gonio import cli
 
     places = [tmp_path / "nowhere" / "data"]
-    monkeypatch.setattr(rm, "shared_data_candidates", lambda: places)
+    monkeypatch.setattr(data_paths, "data_roots", lambda: places)
     argv = ["gonio", "study", "real-materials", "--quick", "--out", str(tmp_path / "o")]
     monkeypatch.setattr(sys, "argv", argv)
     with pytest.raises(SystemExit) as exc:
         cli.main()
-    assert exc.value.code != 0
+    assert exc.value.code == 2
     err = capsys.readouterr().err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and str(places[0]) in lines[0] and "Traceback" not in err
@@ -282,10 +313,10 @@ def test_bad_out_and_unknown_names(tmp_path) -> None:
     f = tmp_path / "file"
     f.write_text("")
     with pytest.raises(UserError, match="not a directory"):
-        rm.run_real_materials(f, rm.RealMaterialsConfig.quick_config(), progress=False)
+        run_real_materials(f, rm.RealMaterialsConfig.quick_config(), progress=False)
     cfg = rm.with_models(rm.RealMaterialsConfig.quick_config(), models=("lambert", "nope"))
     with pytest.raises(UserError, match="nope"):
-        rm.run_real_materials(tmp_path / "o", cfg, progress=False)
+        run_real_materials(tmp_path / "o", cfg, progress=False)
 
 
 # -- a tiny end-to-end run ------------------------------------------------------------------------
@@ -312,7 +343,7 @@ def test_tiny_end_to_end_run_writes_md_csv_png(tmp_path) -> None:
         max_steps=300,
         n_starts=2,
     )
-    rows = rm.run_real_materials(tmp_path, cfg, progress=False)
+    rows = run_real_materials(tmp_path, cfg, progress=False)
     assert [r["model"] for r in rows] == ["lambert", "phong-normalized"]
     md = (tmp_path / "real-materials.md").read_text()
     csv_rows = rm.read_csv(tmp_path / "real-materials.csv")
@@ -340,9 +371,9 @@ def test_tiny_end_to_end_run_writes_md_csv_png(tmp_path) -> None:
 
     kd = next(p for p in params if p["model"] == "lambert" and p["param"] == "kd_G")["map"]
     scene = rm._load_material_scene(rm.MATERIALS[0], 0)
-    g = rm.heldout_grid()
+    g = heldout_grid()
     truth = Renderer(scene).truth_bsdf(g.wi, g.wo)[:, 1]
-    again = rm.heldout_errors(np.full_like(truth, kd / np.pi), truth, g.theta_i, g.weight)
+    again = heldout_errors(np.full_like(truth, kd / np.pi), truth, g.theta_i, g.weight)
     # Mitsuba evaluates in float32 (relative rounding ≈ 6e-8 per value): 1e-6 is far above
     # that and far below any real difference (a wrong kd, channel or grid changes it by ≫ 1e-3).
     assert again["rel_rms"] == pytest.approx(lam["rel_rms"], rel=1e-6)

@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 from fitting.directions import isotropic_gonio_directions
-from fitting.fit import fit_samples
+from fitting.fit import FitOptions, fit_samples
 from simulator.scene import BlendMaterial, DiffuseMaterial, RoughConductorMaterial
 from simulator.truth import direct_samples, material_reference_parameters
 
@@ -92,7 +92,15 @@ def test_recovery(kind: str, m: float) -> None:
     # 400 steps × 32 walkers from the LSQ optimum: τ ≈ 20–45, so ≥ 100 effective samples,
     # enough for a median (its Monte-Carlo error ≈ 1.25 SD/√ESS ≤ 0.13 posterior SD).
     fit = fit_samples(
-        table, "torrance-sparrow", OPTIONS, shared=["m"], fix=fix, steps=400, seed=seed
+        table,
+        FitOptions(
+            model="torrance-sparrow",
+            model_options=OPTIONS,
+            shared=["m"],
+            fix=fix,
+            steps=400,
+            seed=seed,
+        ),
     )
     p = fit.parameters
     assert fit.diagnostics["ess"]["m"] >= 100, fit.diagnostics

@@ -14,7 +14,7 @@ from acquisition.config import PlanConfig
 from acquisition.store import RunStore
 from calibration.reduce import CalibrationError, reduce_run
 from fitting.samples import read_samples
-from gonio.pipeline import acquire
+from gonio.pipeline import AcquireSpec, acquire
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -32,12 +32,13 @@ def _small_run(root: Path, scene: str) -> Path:
     )
     out = root / "run"
     res = acquire(
-        REPO / "configs" / "rigs" / "sim.toml",
-        None,
         out,
-        scene_path=REPO / "configs" / "scenes" / scene,
-        progress=False,
-        plan_config=plan,
+        AcquireSpec(
+            rig=REPO / "configs" / "rigs" / "sim.toml",
+            scene=REPO / "configs" / "scenes" / scene,
+            progress=False,
+            plan=plan,
+        ),
     )
     assert res.outcome.complete
     return out
@@ -157,16 +158,20 @@ def test_a_failed_write_leaves_no_partial_file(dng_run, tmp_path, monkeypatch) -
 
 def test_corrupt_calibration_frame_is_an_error(dng_run: Path, tmp_path: Path) -> None:
     """Darks and flats apply to every capture: a bad one cannot be skipped silently."""
-    from calibration.darks import record_frames
-    from simulator.scene import load_scene
+    from acquisition.operator import AutoOperator
+    from calibration.darks import calibration_frames
+    from gonio.pipeline import capture_calibration
 
     run, _ = _copy(dng_run, tmp_path)
-    scene = load_scene(REPO / "configs" / "scenes" / "raw.toml")
-    from acquisition.clock import VirtualClock
-    from simulator.camera import SimCamera
-
-    cam = SimCamera(scene, VirtualClock(), lambda: (None, None), lambda: 1.0)
-    entries = record_frames(run, "dark", cam.capture_dark, [0.002, 0.016], 2)
+    # Darks recorded as a lab would add them to a finished run (`gonio capture dark`).
+    capture_calibration(
+        run,
+        "dark",
+        rig_path=REPO / "configs" / "rigs" / "sim.toml",
+        scene_path=REPO / "configs" / "scenes" / "raw.toml",
+        operator=AutoOperator(),
+    )
+    entries = calibration_frames(run, "dark")
     (run / entries[0]["path"]).write_bytes(b"junk")
     with pytest.raises(CalibrationError, match="dark frame unusable"):
         reduce_run(run)

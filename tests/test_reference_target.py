@@ -1,44 +1,41 @@
 """Reference-target radiometry (calibration.reference) on a simulated RAW run.
 
-The simulated lab (configs/scenes/raw.toml: DNG, Bayer, noise, darks, PRNU, vignetting) swaps
-the sample for a reference target before the run and images it at three poses
-(gonio.pipeline records a Lambertian target, ρ = 0.99). The lamp's *certificate* in the rig
-config is deliberately 20 % high (1.2 W/sr; the simulated lamp emits 1.0 W/sr, scene file).
+The simulated lab (configs/scenes/raw.toml: DNG, Bayer, noise, darks, PRNU, vignetting) records
+the plan's calibration phases: darks, a flat, then the operator swaps the sample for the rig
+file's reference target (Lambertian, ρ = 0.99) and it is imaged at three poses. The lamp's
+*certificate* in the rig config is deliberately 20 % high (1.2 W/sr; the simulated lamp emits
+1.0 W/sr, scene file).
 
 Truth at every sample's own (ω_i, ω_o) is Mitsuba's own BSDF of the rendered material
 (Renderer.truth_bsdf = bsdf.eval / cos θ, independent of the calibration code). A second target,
 Mitsuba's roughplastic (diffuse base under a rough coating — not Lambertian, like Spectralon), is
-imaged at the same poses; its "calibration certificate" is a (θ_i, θ_o, Δφ) table of Mitsuba's
-own BSDF of that target, as a standards lab would tabulate it.
+imaged at the same poses by a retake (`gonio capture reference`, the rig file now describing it);
+its "calibration certificate" is a (θ_i, θ_o, Δφ) table of Mitsuba's own BSDF of that target, as
+a standards lab would tabulate it.
 """
 
 from __future__ import annotations
 
 import json
 import shutil
+import sqlite3
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from acquisition.clock import VirtualClock
-from acquisition.config import PlanConfig, RigConfig, load_rig
-from acquisition.kinematics import Kinematics
-from acquisition.store import RunStore
+from acquisition.config import PlanConfig, ReferenceConfig, load_rig
+from acquisition.operator import AutoOperator
 from calibration.darks import calibration_frames
 from calibration.reduce import CalibrationError, ReduceOptions, reduce_run
-from calibration.reference import (
-    FRefTable,
-    ReferenceTarget,
-    load_f_ref_table,
-    record_reference_poses,
-)
+from calibration.reference import FRefTable, load_f_ref_table
 from fitting.directions import spherical_to_vector
 from fitting.samples import Flags
-from gonio.pipeline import acquire
+from gonio.pipeline import AcquireSpec, acquire, capture_calibration
 from simulator.camera import SimCamera
 from simulator.render import Renderer
-from simulator.scene import RoughPlasticMaterial, load_scene
+from simulator.scene import RoughPlasticMaterial, load_scene, world_scene
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE = REPO / "configs" / "scenes" / "raw.toml"
@@ -59,6 +56,7 @@ def run(tmp_path_factory: pytest.TempPathFactory):
             "delta_phi_deg": [180.0, 120.0, 60.0],
             "exposures_s": EXPOSURES_S,
             "order": "nearest",
+            "calibration": {"dark": {}, "flat": {}, "reference": {}},
         }
     )
     rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
@@ -67,7 +65,7 @@ def run(tmp_path_factory: pytest.TempPathFactory):
     wrong = tuple(CERTIFICATE_ERROR * i for i in scene.light.intensity_W_sr)
     rig = rig.model_copy(update={"light": rig.light.model_copy(update={"intensity_W_sr": wrong})})
     res = acquire(
-        None, None, out, scene_config=scene, progress=False, rig_config=rig, plan_config=plan
+        out, AcquireSpec(scene=scene, progress=False, rig=rig, plan=plan, operator=AutoOperator())
     )
     assert res.outcome.complete
     refs = calibration_frames(out, "reference")
@@ -109,8 +107,9 @@ def test_reference_method_recovers_mitsuba_brdf_despite_a_wrong_certificate(run,
     # The scale itself: the median ratio of > 3000 samples has a statistical error ≈ 1.25σ/√N
     # ≲ 0.05 %; 0.5 % is ten times that and 40× below the certificate's error.
     assert abs(np.median(ratio) - 1.0) < 0.005, np.median(ratio)
-    # σ stays honest with the reference's own σ added in quadrature (same bounds as the
-    # certified method's acceptance test: std of N > 3000 unit residuals is 1 ± 0.013).
+    # σ is statistical only and honest (same bounds as the certified method's acceptance test:
+    # std of N > 3000 unit residuals is 1 ± 0.013); the shared scale error (≲ 3e-4 relative,
+    # below) shifts the mean z by at most 3e-4/(σ/f ≥ 5e-3) = 0.06, inside the 0.1 bound.
     z = (table.f[sel] - truth) / table.sigma[sel]
     assert 0.8 <= np.std(z) <= 1.25 and abs(np.mean(z)) <= 0.1, (np.std(z), np.mean(z))
     meta = json.loads(table.metadata["gonio.calibration"])
@@ -120,6 +119,19 @@ def test_reference_method_recovers_mitsuba_brdf_despite_a_wrong_certificate(run,
     # The reference scale's own σ is reported: averaging ~3 × 500 superpixels per channel at
     # SNR ~100 gives ~3e-4; it must be positive and far below the samples' σ/f ≥ 0.5 %.
     assert np.all(rel > 0) and np.all(rel < 0.003), rel
+    # …and goes to the budget as one error shared by every sample of a channel, not into σ.
+    scale = [
+        c for c in json.loads(table.metadata["gonio.budget"]) if c["component"].startswith("scale")
+    ]
+    assert len(scale) == 1 and "every sample" in scale[0]["shared_by"]
+    np.testing.assert_allclose(
+        [scale[0]["relative_sigma"][c] for c in meta["reference"]["channels"]], rel
+    )
+    # The arms' angle errors are named too, and marked as not carried by the fit.
+    arms = [
+        c for c in json.loads(table.metadata["gonio.budget"]) if c["component"].startswith("arm")
+    ]
+    assert len(arms) == 2 and all(c["propagated"] is False for c in arms)
     # The recovered effective intensity is the lamp's true one (the camera model is right in the
     # simulator), within 5σ of the reported uncertainty.
     k = np.array(meta["reference"]["k_W_sr"])
@@ -145,10 +157,10 @@ def test_without_reference_captures_certified_stays_the_default(run, tmp_path) -
     run_dir, _ = run
     bare = tmp_path / "bare"
     shutil.copytree(run_dir, bare, ignore=shutil.ignore_patterns("reference"))
-    index = bare / "calibration" / "frames.json"
-    doc = json.loads(index.read_text())
-    doc["frames"] = [e for e in doc["frames"] if e["kind"] != "reference"]
-    index.write_text(json.dumps(doc))
+    # The same run as if the plan had had no reference phase: its rows go from the manifest.
+    with sqlite3.connect(bare / "manifest.sqlite") as db:
+        db.execute("DELETE FROM calibration_captures WHERE kind = 'reference'")
+        db.execute("DELETE FROM calibration_takes WHERE kind = 'reference'")
     table = _reduce(bare, "auto", tmp_path / "a.parquet")
     assert json.loads(table.metadata["gonio.calibration"])["radiometry"] == "certified"
     with pytest.raises(CalibrationError, match="no reference-target captures"):
@@ -166,10 +178,25 @@ def _f_ref_table(renderer: Renderer) -> FRefTable:
     return FRefTable((ti, ti, dp), renderer.truth_bsdf(wi, wo).reshape(*g[0].shape, 3))
 
 
+def _retake(run_dir: Path, dest: Path, reference: ReferenceConfig) -> Path:
+    """A copy of the run with a new reference take of TARGET (the world's true target) that the
+    rig file describes as `reference` — `gonio capture reference` with a new certificate."""
+    shutil.copytree(run_dir, dest)
+    rig = load_rig(REPO / "configs" / "rigs" / "sim.toml").model_copy(
+        update={"reference": reference}
+    )
+    scene = load_scene(SCENE).model_copy(update={"reference_target": TARGET})
+    n = capture_calibration(
+        dest, "reference", rig_config=rig, scene_config=scene, operator=AutoOperator()
+    )
+    assert n == 3 * len(EXPOSURES_S)
+    return dest
+
+
 def test_non_lambertian_reference_with_a_calibrated_table(run, tmp_path) -> None:
     run_dir, renderer = run
-    scene = load_scene(SCENE)
-    # The same camera body (same seed → same fixed-pattern noise as the run's darks and flat).
+    rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
+    scene = world_scene(load_scene(SCENE), rig)
     cam = SimCamera(scene, VirtualClock(), lambda: (None, None), lambda: 1.0)
     target_renderer = cam.reference_renderer(TARGET)
     table_f = _f_ref_table(target_renderer)
@@ -183,21 +210,16 @@ def test_non_lambertian_reference_with_a_calibrated_table(run, tmp_path) -> None
     wi, wo = spherical_to_vector(a[:, 0], p[:, 0]), spherical_to_vector(a[:, 1], p[:, 1])
     assert np.max(np.abs(table_f(wi, wo) / target_renderer.truth_bsdf(wi, wo) - 1.0)) < 2e-3
 
-    rig = RigConfig.model_validate(RunStore.open(run_dir).run_config()["rig"])
-    kin = Kinematics(rig)
-
-    def capture(t, light_pos, cam_pos):
-        return cam.capture_reference(t, light_pos, cam_pos, material=TARGET)
-
-    # The tabulated target: recorded into a copy of the run (it replaces the Lambertian one).
-    tab_run = tmp_path / "table"
-    shutil.copytree(run_dir, tab_run)
-    record_reference_poses(
-        tab_run, capture, kin, EXPOSURES_S, target=ReferenceTarget(reflectance=None, table=table_f)
+    # The tabulated target: a new take in a copy of the run (the newest take is used).
+    csv = tmp_path / "certificate.csv"
+    table_f.write_csv(csv)
+    tab_run = _retake(
+        run_dir, tmp_path / "table", ReferenceConfig(type="table", table=str(csv), size_m=0.05)
     )
-    # The table travels with the run as a CSV and reads back to the same values.
-    stored = load_f_ref_table(tab_run / "calibration" / "reference" / "f_ref.csv")
+    # The table travels with the run and reads back to the same values.
+    stored = load_f_ref_table(tab_run / "calibration" / "reference" / "f_ref-t02.csv")
     assert np.allclose(stored.values, table_f.values, rtol=1e-8)
+    assert {e["take"] for e in calibration_frames(tab_run, "reference")} == {2}
 
     table = _reduce(tab_run, "reference", tmp_path / "t.parquet")
     sel = _good(table)
@@ -205,13 +227,13 @@ def test_non_lambertian_reference_with_a_calibrated_table(run, tmp_path) -> None
     assert np.median(np.abs(ratio - 1.0)) <= 0.02
     assert abs(np.median(ratio) - 1.0) < 0.005, np.median(ratio)
 
-    # The same captures taken for a Lambertian target of the base's albedo are wrong: roughplastic
-    # at 0°/45° is ≈ 17 % below ρ/π (Fresnel transmission in and out of the coating) — the
-    # reason a calibrated f_ref(θ) table is needed.
-    lam_run = tmp_path / "lambert"
-    shutil.copytree(run_dir, lam_run)
-    record_reference_poses(
-        lam_run, capture, kin, EXPOSURES_S, target=ReferenceTarget(TARGET.diffuse_reflectance)
+    # The same captures described as a Lambertian target of the base's albedo are wrong:
+    # roughplastic at 0°/45° is ≈ 17 % below ρ/π (Fresnel transmission in and out of the
+    # coating) — the reason a calibrated f_ref(θ) table is needed.
+    lam_run = _retake(
+        run_dir,
+        tmp_path / "lambert",
+        ReferenceConfig(albedo=TARGET.diffuse_reflectance, size_m=0.05),
     )
     wrong = _reduce(lam_run, "reference", tmp_path / "l.parquet")
     sel = _good(wrong)

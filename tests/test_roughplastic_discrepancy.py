@@ -25,7 +25,7 @@ import pytest
 
 from fitting import models
 from fitting.directions import isotropic_gonio_directions
-from fitting.fit import fit_samples
+from fitting.fit import FitOptions, fit_samples
 from simulator.scene import (
     BlendMaterial,
     DiffuseMaterial,
@@ -45,7 +45,15 @@ def _fit(material, seed: int):
     wi, wo = isotropic_gonio_directions()
     table, f_true = direct_samples(material, wi, wo, rel_sigma=NOISE, floor_sr=1e-3, rng=seed)
     fit = fit_samples(
-        table, "torrance-sparrow", OPTIONS, shared=["m"], fix={"ior": ETA}, steps=400, seed=seed
+        table,
+        FitOptions(
+            model="torrance-sparrow",
+            model_options=OPTIONS,
+            shared=["m"],
+            fix={"ior": ETA},
+            steps=400,
+            seed=seed,
+        ),
     )
     # The misfit the discrepancy should report: the fitted (MAP) model against Mitsuba's
     # noise-free truth, as an RMS fraction of the model value — what s measures.

@@ -10,16 +10,17 @@ import sys
 from pathlib import Path
 
 import pytest
-import tomli_w
 
 from acquisition.config import PlanConfig, load_rig
 from acquisition.plans import build_plan
 from acquisition.rig import build_rig
+from acquisition.run_document import RunDocument
 from acquisition.runner import run_acquisition
 from acquisition.store import RunStore
 from gonio.backends import prepare_backends
-from gonio.pipeline import _clean, acquire
-from gonio.runs import check_rig, find_runs, summarize_run
+from gonio.pipeline import AcquireSpec, acquire
+from gonio.rig_check import check_rig
+from gonio.runs import find_runs, summarize_run
 from simulator.dxl import ReplyFaults
 
 REPO = Path(__file__).resolve().parent.parent
@@ -50,11 +51,11 @@ def gonio(*args: str) -> subprocess.CompletedProcess:
 def runs_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("runs")
     rig = load_rig(SIM_RIG)
-    acquire(None, None, root / "done-run", rig_config=rig, plan_config=PLAN, progress=False)
+    acquire(root / "done-run", AcquireSpec(rig=rig, plan=PLAN, progress=False))
     # An incomplete run: the lamp dies after 3 captures.
     world = prepare_backends(rig)
-    doc = {"rig": _clean(rig.model_dump(mode="json")), "plan": _clean(PLAN.model_dump(mode="json"))}
-    store = RunStore.create(root / "lamp-died", tomli_w.dumps(doc))
+    doc = RunDocument.new(rig, PLAN, version="test", device={})
+    store = RunStore.create(root / "lamp-died", doc.toml())
     dev = build_rig(rig)
 
     def lamp_dies(n: int) -> None:

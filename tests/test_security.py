@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 import tomli_w
 
-from acquisition.config import ConfigError, load_plan, load_rig
-from acquisition.store import RunStore, RunStoreError
+from acquisition.config import load_plan, load_rig
+from acquisition.store import CaptureStart, RunStore, RunStoreError
+from plumbing.config import ConfigError
 
 REPO = Path(__file__).resolve().parent.parent
 PACKAGES = ("acquisition", "calibration", "fitting", "gonio", "simulator")
@@ -185,17 +186,19 @@ def _tiny_run(root: Path, frame_name: str | None = None) -> Path:
     """A complete one-capture run written through the store; optionally a tampered path."""
     store = RunStore.create(root, 'name = "t"\n')
     cid = store.begin_capture(
-        pose_index=0,
-        bracket_index=0,
-        exposure_s=0.01,
-        pose=(0.3, 0.0, 0.3, np.pi),
-        axes_commanded={},
-        axes_measured={},
-        light_dir=[0.0, 0.0, 1.0],
-        camera_dir=[0.0, 0.0, 1.0],
-        suffix=".exr",
-        devices={},
-        lab_time_s=0.0,
+        CaptureStart(
+            pose_index=0,
+            bracket_index=0,
+            exposure_s=0.01,
+            pose=(0.3, 0.0, 0.3, np.pi),
+            axes_commanded={},
+            axes_measured={},
+            light_dir=[0.0, 0.0, 1.0],
+            camera_dir=[0.0, 0.0, 1.0],
+            suffix=".exr",
+            devices={},
+            lab_time_s=0.0,
+        )
     )
     store.finish_capture(cid, b"frame bytes", {})
     store.mark_complete()
@@ -319,17 +322,19 @@ def test_pending_row_with_escaping_path_is_never_written(tmp_path: Path) -> None
     """finish_capture writes to the row's frame path: a tampered one is refused, not written."""
     store = RunStore.create(tmp_path / "run", "")
     cid = store.begin_capture(
-        pose_index=0,
-        bracket_index=0,
-        exposure_s=0.01,
-        pose=(0.3, 0.0, 0.3, np.pi),
-        axes_commanded={},
-        axes_measured={},
-        light_dir=[0.0, 0.0, 1.0],
-        camera_dir=[0.0, 0.0, 1.0],
-        suffix=".exr",
-        devices={},
-        lab_time_s=0.0,
+        CaptureStart(
+            pose_index=0,
+            bracket_index=0,
+            exposure_s=0.01,
+            pose=(0.3, 0.0, 0.3, np.pi),
+            axes_commanded={},
+            axes_measured={},
+            light_dir=[0.0, 0.0, 1.0],
+            camera_dir=[0.0, 0.0, 1.0],
+            suffix=".exr",
+            devices={},
+            lab_time_s=0.0,
+        )
     )
     with store._db:
         store._db.execute("UPDATE captures SET frame_path = '../planted.exr' WHERE id = ?", (cid,))
@@ -380,17 +385,19 @@ def _evil_run(root: Path) -> Path:
     }
     store = RunStore.create(root, tomli_w.dumps(doc))
     cid = store.begin_capture(
-        pose_index=0,
-        bracket_index=0,
-        exposure_s=0.01,
-        pose=(0.3, 0.0, 0.3, np.pi),
-        axes_commanded={},
-        axes_measured={},
-        light_dir=[0.0, 0.0, 1.0],
-        camera_dir=[0.0, 0.0, 1.0],
-        suffix=".exr",
-        devices={},
-        lab_time_s=0.0,
+        CaptureStart(
+            pose_index=0,
+            bracket_index=0,
+            exposure_s=0.01,
+            pose=(0.3, 0.0, 0.3, np.pi),
+            axes_commanded={},
+            axes_measured={},
+            light_dir=[0.0, 0.0, 1.0],
+            camera_dir=[0.0, 0.0, 1.0],
+            suffix=".exr",
+            devices={},
+            lab_time_s=0.0,
+        )
     )
     store.finish_capture(cid, b"frame", {})
     store.close()
@@ -474,6 +481,10 @@ def test_report_escapes_every_user_string(tmp_path: Path) -> None:
         "details",
         "summary",
         "pre",
+        "div",  # the verdict box
+        "strong",  # its title
+        "ul",  # the model's coverage list
+        "li",
     }
     assert set(tags) <= allowed, set(tags) - allowed
     text = "".join(parser.text)

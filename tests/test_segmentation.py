@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import tomli_w
 from matplotlib.path import Path as PolygonPath
 
 from acquisition.clock import VirtualClock
@@ -32,7 +31,7 @@ from calibration.geometry import Intrinsics, project_points
 from calibration.reduce import ReduceOptions, reduce_run
 from calibration.segmentation import iou, polygon_mask, segment_sample
 from fitting.samples import Flags
-from gonio.pipeline import acquire
+from gonio.pipeline import AcquireSpec, acquire
 from simulator.camera import SimCamera
 from simulator.render import camera_intrinsics, world_to_camera_cv
 from simulator.scene import Scene, load_scene
@@ -52,7 +51,10 @@ ARM_ERROR_RAD = np.radians(0.25)  # and the camera's θ is 0.25° off
 
 def _scene() -> Scene:
     d = load_scene(REPO / "configs" / "scenes" / "raw.toml").model_dump()
-    d["camera"].update(format="exr", resolution=(96, 96))
+    # The world states its camera (96 × 96, 8° across) and sample (50 mm) itself: the true
+    # values, whatever a rig file believes.
+    d["camera"].update(format="exr", resolution=(96, 96), fov_deg=8.0, f_number=4.0)
+    d["sample"] = {"size_m": 0.05}
     d["sensor"].update(bayer=None, vignetting=False, prnu=0.0, dark_current_e_s=0.0, dsnu_e=0.0)
     # A thin rim (0.5 mm) so that it does not hide the sample's edge: occlusion would move the
     # visible edge away from the projected corners (the truth below has no occlusion).
@@ -184,9 +186,18 @@ def test_a_sharp_step_is_located_to_a_tenth_of_a_pixel() -> None:
     assert np.array_equal(seg.mask, expected)
 
 
-@pytest.fixture(scope="module")
-def holder_run(tmp_path_factory: pytest.TempPathFactory):
-    out = tmp_path_factory.mktemp("seg") / "run"
+def _rig(size_m: float):
+    """The sim rig file describing this test's camera (96 × 96 px of 5 µm, 8° across: focal
+    length 48 px·5 µm / tan 4°) and a sample of side `size_m`."""
+    rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
+    focal = 48 * 5e-6 / np.tan(np.radians(4.0))
+    cam = rig.camera.model_copy(update={"resolution": (96, 96), "focal_length_m": focal})
+    sample = rig.sample.model_copy(update={"size_m": size_m})
+    cal = rig.calibration.model_copy(update={"intrinsics": None})  # sim-camera.json is 64 px
+    return rig.model_copy(update={"camera": cam, "sample": sample, "calibration": cal})
+
+
+def _holder_acquire(out: Path, size_m: float, scene: Scene) -> Path:
     plan = PlanConfig.model_validate(
         {
             "name": "segmentation",
@@ -198,13 +209,20 @@ def holder_run(tmp_path_factory: pytest.TempPathFactory):
             "order": "nearest",
         }
     )
-    rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
-    scene = _scene()
-    res = acquire(
-        None, None, out, scene_config=scene, progress=False, rig_config=rig, plan_config=plan
-    )
+    res = acquire(out, AcquireSpec(scene=scene, progress=False, rig=_rig(size_m), plan=plan))
     assert res.outcome.complete
-    return out, scene
+    return out
+
+
+@pytest.fixture(scope="module")
+def holder_run(tmp_path_factory: pytest.TempPathFactory):
+    """The same world measured twice: by a rig file stating the sample's true size, and by one
+    overstating it by 8 % (the frames are the same; only what the lab believes differs)."""
+    root = tmp_path_factory.mktemp("seg")
+    scene = _scene()
+    right = _holder_acquire(root / "right", scene.sample.size_m, scene)
+    wrong = _holder_acquire(root / "wrong", SIZE_ERROR * scene.sample.size_m, scene)
+    return right, wrong, scene
 
 
 def _coverage_of_rows(run_dir: Path, scene: Scene, table) -> np.ndarray:
@@ -221,21 +239,18 @@ def _coverage_of_rows(run_dir: Path, scene: Scene, table) -> np.ndarray:
 
 
 def test_reduce_flags_the_holder_when_the_sample_size_is_overstated(holder_run, tmp_path) -> None:
-    run_dir, scene = holder_run
+    run_dir, wrong_dir, scene = holder_run
+    store_a, store_b = RunStore.open(run_dir), RunStore.open(wrong_dir)
+    # The same world, so the same frames: only the rig file's belief differs.
+    assert [c.sha256 for c in store_a.captures()] == [c.sha256 for c in store_b.captures()]
+    assert store_b.run_config()["sample"]["size_m"] == SIZE_ERROR * scene.sample.size_m
     # The right size first: the image agrees with the geometry, (almost) nothing is masked.
     good = reduce_run(run_dir, ReduceOptions(bin_px=1), out=tmp_path / "good.parquet")
     masked = (good.flags & Flags.MASKED) != 0
     assert masked.mean() < 0.005, masked.mean()
 
-    # Overstate the sample in run.toml (a wrong `sample.size_m`): the footprint grows onto the
-    # white holder. The reduction must flag those pixels MASKED and keep the sample's.
-    doc = RunStore.open(run_dir).run_config()
-    doc["sample"]["size_m"] = SIZE_ERROR * scene.sample.size_m
-    wrong_dir = tmp_path / "wrong"
-    import shutil
-
-    shutil.copytree(run_dir, wrong_dir)
-    (wrong_dir / "run.toml").write_text(tomli_w.dumps(doc))
+    # The rig file overstated the sample (`sample.size_m`): the footprint grows onto the white
+    # holder. The reduction must flag those pixels MASKED and keep the sample's.
     table = reduce_run(wrong_dir, ReduceOptions(bin_px=1), out=tmp_path / "w.parquet")
     cov = _coverage_of_rows(wrong_dir, scene, table)
     masked = (table.flags & Flags.MASKED) != 0

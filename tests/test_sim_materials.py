@@ -16,9 +16,10 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
+from conftest import data_file
 
-from acquisition.config import ConfigError
 from fitting import models
+from plumbing.config import ConfigError
 from simulator.render import (
     Renderer,
     board_renderer,
@@ -69,8 +70,8 @@ def _paper_renderer(path: str) -> Renderer:
     return Renderer(_flat_scene(MeasuredMaterial(filename=path)))
 
 
-def test_measured_paper_truth_finite_positive_and_matches_render(shared_data):
-    path = shared_data / "rgl_brdf" / "paper_white_rgb.bsdf"
+def test_measured_paper_truth_finite_positive_and_matches_render():
+    path = data_file("rgl_brdf/paper_white_rgb.bsdf")
     r = _paper_renderer(str(path))
     rng = np.random.default_rng(3)
     # Directions up to 80° from the normal (the tensor's data extend to grazing; stay inside).
@@ -97,8 +98,8 @@ def test_measured_paper_truth_finite_positive_and_matches_render(shared_data):
     np.testing.assert_allclose(img[m], truth, rtol=1e-3)
 
 
-def test_relative_measured_path_resolved_against_scene_file(tmp_path, shared_data):
-    src = shared_data / "rgl_brdf" / "paper_white_rgb.bsdf"
+def test_relative_measured_path_resolved_against_scene_file(tmp_path):
+    src = data_file("rgl_brdf/paper_white_rgb.bsdf")
     (tmp_path / "data").mkdir()
     shutil.copy(src, tmp_path / "data" / "paper.bsdf")
     (tmp_path / "scenes").mkdir()
@@ -112,7 +113,7 @@ def test_relative_measured_path_resolved_against_scene_file(tmp_path, shared_dat
         load_scene(toml)
 
 
-def test_shipped_scene_files_load(configs, shared_data):
+def test_shipped_scene_files_load(configs):
     for name in ("paper.toml", "effects.toml", "model_ts.toml"):
         scene = load_scene(configs / "scenes" / name)
         assert scene.name

@@ -8,22 +8,25 @@ from pathlib import Path
 
 import pytest
 
-from acquisition.store import RunStore, RunStoreError, atomic_write_bytes
+from acquisition.store import CaptureStart, RunStore, RunStoreError
+from plumbing.atomic import atomic_write_bytes
 
 
 def _begin(store: RunStore, pose: int, bracket: int = 0) -> int:
     return store.begin_capture(
-        pose_index=pose,
-        bracket_index=bracket,
-        exposure_s=0.01,
-        pose=(0.1, 0.0, 0.2, 3.1),
-        axes_commanded={"a": 0.1},
-        axes_measured={"a": 0.1001},
-        light_dir=[0.0, 0.0, 1.0],
-        camera_dir=[0.0, 0.0, 1.0],
-        suffix=".exr",
-        devices={},
-        lab_time_s=1.0,
+        CaptureStart(
+            pose_index=pose,
+            bracket_index=bracket,
+            exposure_s=0.01,
+            pose=(0.1, 0.0, 0.2, 3.1),
+            axes_commanded={"a": 0.1},
+            axes_measured={"a": 0.1001},
+            light_dir=[0.0, 0.0, 1.0],
+            camera_dir=[0.0, 0.0, 1.0],
+            suffix=".exr",
+            devices={},
+            lab_time_s=1.0,
+        )
     )
 
 

@@ -16,18 +16,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gonio.study import (
-    AREA_LAMP_RADIUS_M,
-    StudyConfig,
+from gonio.studies.accuracy_analysis import (
     adaptive_vs_grid,
     pareto,
     pick_plan,
-    read_csv,
-    run_study,
-    spp_ladder,
     spp_summary,
     summarise,
 )
+from gonio.studies.accuracy_sweep import (
+    AREA_LAMP_RADIUS_M,
+    StudyConfig,
+    read_csv,
+    spp_ladder,
+)
+from gonio.studies.accuracy_vs_time import run_study
 
 REPO = Path(__file__).resolve().parent.parent
 CSV = REPO / "docs" / "accuracy-vs-time.csv"
@@ -87,7 +89,7 @@ def test_coverage_of_the_68_percent_interval(rows) -> None:
 
 def test_spp_rows_only_where_the_scene_needs_spp(rows) -> None:
     from gonio.pipeline import config_dir
-    from gonio.study import _scene
+    from gonio.studies.accuracy_sweep import _scene
     from simulator.planner import planned_spp
     from simulator.scene import load_scene
 
@@ -312,3 +314,37 @@ def test_tiny_sweep_regenerates_everything(tmp_path) -> None:
     text = (out / "accuracy-vs-time.md").read_text()
     assert not re.search(r"\bnan\b", text, re.IGNORECASE), "a figure in the document is NaN"
     assert "## Adaptive vs grid plans" in text and "## Render spp" in text
+
+
+def test_plan_target_counts_the_rigs_shared_floor(tmp_path) -> None:
+    """`gonio plan --target kd=T --rig R`: a rig whose reference certificate is 2 % cannot
+    reach 1.5 % on kd whatever the plan (refused in one line, naming the floor); for 3 % the
+    plan chosen must reach √(3² − 2²) ≈ 2.24 % statistically, and the total is printed. Without
+    --rig the figure is said to be statistical only."""
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parent.parent
+    rig = (repo / "configs" / "rigs" / "sim.toml").read_text()
+    assert "albedo_sigma = 0.0" in rig
+    (tmp_path / "rig.toml").write_text(rig.replace("albedo_sigma = 0.0", "albedo_sigma = 0.02", 1))
+    (tmp_path / "sim-camera.json").write_text(
+        (repo / "configs" / "rigs" / "sim-camera.json").read_text()
+    )
+
+    def gonio(*args):
+        cmd = [sys.executable, "-m", "gonio.cli", "plan", *args]
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=repo)
+        return res.returncode, " ".join((res.stdout + res.stderr).split())
+
+    code, text = gonio("--target", "kd=0.015", "--rig", str(tmp_path / "rig.toml"))
+    assert code != 0 and "no plan reaches ±1.5% on kd on this rig" in text and "2%" in text
+    assert "Traceback" not in text
+    code, text = gonio("--target", "kd=0.03", "--rig", str(tmp_path / "rig.toml"))
+    assert code == 0, text
+    stat = float(text.split("expected kd error ")[1].split("%")[0])
+    assert stat <= 100 * np.sqrt(0.03**2 - 0.02**2)
+    total = float(text.split("expected total kd error ")[1].split("%")[0])
+    assert total == pytest.approx(np.hypot(stat, 2.0), abs=0.01)
+    code, text = gonio("--target", "kd=0.03")
+    assert code == 0 and "statistical only" in text

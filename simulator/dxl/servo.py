@@ -266,6 +266,9 @@ class Servo:
         self._persistent_hw_error = 0  # cleared only when the fault is lifted
         self.stuck = False  # injected: the horn does not move (e.g. jammed arm)
         self.position_offset_ticks = 0  # injected: true angle = reported + offset
+        # Direction of the last commanded move (+1, −1; 0 before any): gear play makes the arm
+        # lag it (simulator.world, scene [geometry] backlash_deg).
+        self.last_move = 0
         self._registered: tuple[int, bytes] | None = None
         self._set("goal_position", int(round(self._pos)))
 
@@ -326,6 +329,8 @@ class Servo:
         now = self.clock.now()
         p, _ = self._state(now)
         self._pos = p
+        if goal_internal != p:
+            self.last_move = 1 if goal_internal > p else -1
         if self.stuck:
             self._profile = None
             return

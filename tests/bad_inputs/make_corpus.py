@@ -36,6 +36,18 @@ clock = "sim"
 url = "dxlsim://corpus"
 [light]
 url = "lightsim://corpus"
+[camera]
+resolution = [64, 64]
+pixel_pitch_m = 5e-6
+focal_length_m = 0.0022881066
+f_number = 4.0
+gain_e_per_dn = 2.0
+black_level_dn = 64.0
+white_level_dn = 15055.0
+color_filter = "rgb"
+bit_depth = 14
+[sample]
+size_m = 0.05
 [[axes]]
 role = "light_theta"
 id = 1
@@ -97,7 +109,12 @@ CONFIGS: dict[str, str] = {
         'clock = "sim"',
         'clock = "system"',
     )
-    + '[camera]\nbackend = "gphoto2"\n',
+    .replace('backend = "sim"', "")
+    .replace("[camera]\n", '[camera]\nbackend = "gphoto2"\n'),
+    "rig_unknown_camera_backend.toml": _edit(
+        RIG_OK, "[camera]\n", '[camera]\nbackend = "genicam"\n'
+    ),
+    "rig_missing_intrinsics.toml": RIG_OK + '[calibration]\nintrinsics = "camera-absent.json"\n',
     "rig_python_code.toml": _edit(
         RIG_OK, 'name = "corpus-rig"', "name = __import__('os').system('touch PWNED')"
     ),
@@ -114,8 +131,8 @@ CONFIGS: dict[str, str] = {
     ),
     # scenes
     "scene_unknown_key.toml": _edit(SCENE_OK, "seed = ", "sede = 1\nseed = "),
-    "scene_wrong_type.toml": _edit(SCENE_OK, "f_number = 4.0", 'f_number = "four"'),
-    "scene_angle_out_of_range.toml": _edit(SCENE_OK, "fov_deg = 8.0", "fov_deg = 400.0"),
+    "scene_wrong_type.toml": SCENE_OK + '\n[camera]\nf_number = "four"\n',
+    "scene_angle_out_of_range.toml": SCENE_OK + "\n[camera]\nfov_deg = 400.0\n",
 }
 
 
@@ -130,7 +147,7 @@ def write_configs() -> None:
 def _base_run(dest: Path, scene) -> Path:
     """A one-capture simulated run with fixed timestamps."""
     from acquisition.config import PlanConfig
-    from gonio.pipeline import acquire
+    from gonio.pipeline import AcquireSpec, acquire
 
     plan = PlanConfig.model_validate(
         {
@@ -142,13 +159,14 @@ def _base_run(dest: Path, scene) -> Path:
         }
     )
     res = acquire(
-        REPO / "configs" / "rigs" / "sim.toml",
-        None,
         dest,
-        progress=False,
-        plan_config=plan,
-        scene_config=scene,
-        announce=False,
+        AcquireSpec(
+            rig=REPO / "configs" / "rigs" / "sim.toml",
+            progress=False,
+            plan=plan,
+            scene=scene,
+            announce=False,
+        ),
     )
     assert res.outcome.complete, res.outcome
     _normalise(dest)
@@ -213,7 +231,7 @@ def _garbage(n: int, seed: int) -> bytes:
 
 def write_runs(work: Path) -> None:
     from calibration.reduce import ReduceOptions, reduce_run
-    from fitting.fit import fit_samples
+    from fitting.fit import FitOptions, fit_samples
     from simulator.scene import load_scene
 
     runs = HERE / "run_dirs"
@@ -254,7 +272,7 @@ def write_runs(work: Path) -> None:
     _sql(r, "UPDATE meta SET value = '99' WHERE key = 'schema_version'")
     r = variant("runtoml_newer", exr)
     text = (r / "run.toml").read_text()
-    (r / "run.toml").write_text(_edit(text, "schema_version = 1", "schema_version = 99"))
+    (r / "run.toml").write_text(_edit(text, "schema_version = 2", "schema_version = 99"))
     r = variant("frame_path_escape", exr)
     _sql(r, "UPDATE captures SET frame_path = '../../etc/passwd'")
     r = variant("frame_path_absolute", exr)
@@ -272,7 +290,9 @@ def write_runs(work: Path) -> None:
     fitted = work / "fitted"
     shutil.copytree(exr, fitted)
     table = reduce_run(fitted, ReduceOptions(bin_px=8, mode="center"))
-    fit_samples(table, "lambert", walkers=8, steps=40, n_starts=1, seed=0, out_dir=fitted)
+    fit_samples(
+        table, FitOptions(model="lambert", walkers=8, steps=40, n_starts=1, seed=0), out_dir=fitted
+    )
     _fix_wall_times(fitted / "fit-lambert.json")
     (fitted / "samples.parquet").write_bytes(_strip_parquet_meta(fitted / "samples.parquet"))
 

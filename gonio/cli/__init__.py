@@ -1,0 +1,57 @@
+"""The `gonio` command line. Subcommand names and options are contracts (issue #2).
+
+The commands live in modules by what they work on (`lab`, `fit`, `studies`), registered on one
+typer application (`_app`); `main` is the one place where errors meet the user: a
+`plumbing.errors.UserError` (or a usage error) is one line and exit 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+
+import typer
+
+from gonio.cli import fit, lab, studies, texels  # noqa: F401 - registers the commands
+from gonio.cli._app import app, err
+
+__all__ = ["app", "main"]
+
+
+def main() -> None:
+    """Entry point: user mistakes print one line (no traceback) and exit 2."""
+    warnings.filterwarnings("ignore", category=FutureWarning)
+    from gonio.errors import user_error_types
+
+    debug = "--debug" in sys.argv[1:] or os.environ.get("GONIO_DEBUG") == "1"
+    try:
+        rc = app(standalone_mode=False)
+        if isinstance(rc, int) and rc:
+            sys.exit(rc)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except typer.Abort:
+        err.print("aborted")
+        sys.exit(130)
+    except KeyboardInterrupt:
+        err.print("interrupted")
+        sys.exit(130)
+    except Exception as exc:  # the one place where errors meet the user
+        # Usage errors (unknown option, bad value) are click exceptions — but typer ≥ 0.16
+        # vendors click, so match the class by name across both copies rather than by identity.
+        if any(c.__name__ == "ClickException" for c in type(exc).__mro__):
+            exc.show()  # type: ignore[attr-defined]
+            sys.exit(exc.exit_code)
+        if debug:
+            raise
+        if isinstance(exc, user_error_types()):
+            msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            # Plain write, not rich: rich would wrap a long path onto a second line.
+            sys.stderr.write(f"error: {msg}\n")
+            sys.exit(2)
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        sys.stderr.write(
+            f"internal error: {type(exc).__name__}: {first} (run with --debug for a traceback)\n"
+        )
+        sys.exit(1)

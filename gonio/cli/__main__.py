@@ -1,0 +1,5 @@
+"""`python -m gonio.cli`."""
+
+from gonio.cli import main
+
+main()

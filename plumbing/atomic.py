@@ -1,0 +1,76 @@
+"""Atomic file writes, shared by every layer.
+
+A reader — or a crash — never sees a half-written file: the bytes go to a temp file in the same
+directory, are fsync'd, then moved into place, and the directory entry is fsync'd too.
+
+One default: **never overwrite** (the move is `os.link`, which raises FileExistsError rather
+than replace a file — a captured frame or an earlier result is never lost by accident). A caller
+that means to replace a file it owns says so with `overwrite=True` (then `os.replace`).
+
+Never replaced, with or without `overwrite`: a symlink (the move would put a regular file in
+place of the link) and anything that is not a regular file (a device, a FIFO, a directory,
+a socket) — the write is refused before a byte is written (`NotARegularFile`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import BinaryIO
+
+from plumbing.errors import UserError
+
+__all__ = ["NotARegularFile", "atomic_write_bytes", "atomic_write_with", "fsync_dir"]
+
+
+class NotARegularFile(UserError, OSError):
+    """An output path that is a symlink, device, FIFO, socket or directory."""
+
+
+def _refuse_special(path: Path) -> None:
+    if path.is_symlink():
+        raise NotARegularFile(
+            f"{path}: is a symbolic link; gonio does not replace links — write to the file "
+            "itself or choose another path"
+        )
+    if path.exists() and not path.is_file():
+        kind = "a directory" if path.is_dir() else "not a regular file (a device, FIFO or socket)"
+        raise NotARegularFile(f"{path}: is {kind}; choose a file path for the output")
+
+
+def fsync_dir(path: str | os.PathLike) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write_with(
+    path: str | os.PathLike, write: Callable[[BinaryIO], None], *, overwrite: bool = False
+) -> Path:
+    """Call `write(fh)` on a temp file beside `path`, fsync, then move it into place: by
+    `os.link` (FileExistsError if `path` exists), or with `overwrite=True` by `os.replace`."""
+    path = Path(path)
+    _refuse_special(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            os.link(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    fsync_dir(path.parent)
+    return path
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, overwrite: bool = False) -> Path:
+    """`data` into `path` atomically (see `atomic_write_with`)."""
+    return atomic_write_with(path, lambda fh: fh.write(data), overwrite=overwrite)

@@ -1,0 +1,173 @@
+"""Instrument errors in the simulated world (simulator.scene: GeometryTruth, SensorSpec), each
+enabled alone at a stated size: it moves what the lab recovers by what a first-order calculation
+predicts (within 20 % of that prediction), and a disabled one never runs.
+
+The lab's view is the real path: `calibrate_rig` (board views through the real driver stack,
+solvePnP, the arm-offset fit) for the arm errors; acquisition and `reduce_run` for the camera's
+non-linearity. Truth is the scene's stated error, never the code under test.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from acquisition.operator import AutoOperator
+from acquisition.rig import build_rig
+from gonio.backends import prepare_backends
+from gonio.rig_calibration import calibrate_rig
+from simulator.scene import GeometryTruth, load_scene
+from tests.test_calibrate_rig import BOARD, REPO, _rig
+
+#: The arm-offset fit's own precision on these 12 views is ~0.02° (test_calibrate_rig: σ <
+#: 0.05°), so each error is made large enough that 20 % of its predicted effect (≥ 0.05°) is
+#: well above it. Sizes are still within what real rigs show (backlash of a worn horn, the sag
+#: of a long arm).
+BACKLASH_DEG = 1.5
+SAG_DEG = 0.5
+
+
+def _calibrate(tmp_path, geometry: GeometryTruth):
+    scene = load_scene(REPO / "configs" / "scenes" / "demo.toml")
+    rig = _rig()
+    world = prepare_backends(rig, scene.model_copy(update={"geometry": geometry}))
+    dev = build_rig(rig)
+    try:
+        doc = calibrate_rig(rig, dev, BOARD, tmp_path / "arms.json", world.hands(AutoOperator()))
+    finally:
+        dev.close()
+    used = [v for v in doc["views"] if v["used"]]
+    assert len(used) >= 10
+    return doc, world, rig
+
+
+def test_backlash_shifts_the_recovered_zero_by_the_mean_lag(tmp_path) -> None:
+    """Play b on the camera elevation: each view's arm lags the direction it came from by b/2,
+    so the fitted constant offset (least squares over equally weighted views) is the mean of
+    −sign(move)·b/2 over the views, the first move starting from the park angle."""
+    doc, world, rig = _calibrate(
+        tmp_path, GeometryTruth(backlash_deg={"camera_theta": BACKLASH_DEG})
+    )
+    park = next(a.park_deg for a in rig.axes if a.role == "camera_theta")
+    prev, sign, lags = park, 0.0, []
+    for v in doc["views"]:
+        theta = v["axes_deg"]["camera_theta"]
+        if abs(theta - prev) > 1e-6:
+            sign = math.copysign(1.0, theta - prev)
+        prev = theta
+        if v["used"]:
+            lags.append(-sign * BACKLASH_DEG / 2)
+    predicted = float(np.mean(lags))
+    assert abs(predicted) > 0.2  # the plan's views do not cancel the lag out
+    got = doc["offsets_deg"]["camera_theta"]
+    assert abs(got - predicted) <= 0.2 * abs(predicted), (got, predicted)
+    assert world.effect_counts["backlash"] > 0 and world.effect_counts["compliance"] == 0
+
+
+def test_arm_sag_shifts_the_recovered_zero_by_the_mean_sag(tmp_path) -> None:
+    """Sag c·sin θ of the camera arm: the fitted constant offset is the mean of c·sin θ_k over
+    the views (first order in c: sin of the true angle ≈ sin of the believed one)."""
+    doc, world, _ = _calibrate(tmp_path, GeometryTruth(compliance_deg={"camera_theta": SAG_DEG}))
+    sags = [
+        SAG_DEG * math.sin(math.radians(v["axes_deg"]["camera_theta"]))
+        for v in doc["views"]
+        if v["used"]
+    ]
+    predicted = float(np.mean(sags))
+    got = doc["offsets_deg"]["camera_theta"]
+    assert abs(got - predicted) <= 0.2 * predicted, (got, predicted)
+    assert world.effect_counts["compliance"] > 0 and world.effect_counts["backlash"] == 0
+
+
+def test_a_world_without_instrument_errors_runs_none(tmp_path) -> None:
+    """The demo scene states no arm error: after a whole board calibration none has run."""
+    world = prepare_backends(_rig(), load_scene(REPO / "configs" / "scenes" / "demo.toml"))
+    world.true_axes_rad()
+    assert sum(world.effect_counts.values()) == 0
+
+
+#: β = 5 %: a poor sensor's non-linearity (machine-vision datasheets: 0.1–1 %, consumer CMOS
+#: up to a few %), large so the effect (β·u ≈ 1–4 %) stands far above DN rounding (< 0.1 %).
+BETA = 0.05
+
+
+def _acquire(out, beta: float):
+    """A small run of the demo material, noise off (so the two runs differ only by β)."""
+    from acquisition.config import PlanConfig
+    from gonio.pipeline import AcquireSpec, acquire
+
+    scene = load_scene(REPO / "configs" / "scenes" / "demo.toml")
+    sensor = scene.sensor.model_copy(update={"noise": False, "nonlinearity": beta})
+    plan = PlanConfig(
+        name="linearity",
+        type="isotropic",
+        theta_i_deg=(30.0, 50.0),
+        theta_o_deg=(0.0, 30.0, 50.0),
+        delta_phi_deg=(180.0, 120.0),
+        exposures_s=(0.016,),
+    )
+    spec = AcquireSpec(
+        rig=REPO / "configs" / "rigs" / "sim.toml",
+        plan=plan,
+        scene=scene.model_copy(update={"sensor": sensor}),
+        progress=False,
+        operator=AutoOperator(),
+    )
+    assert acquire(out, spec).outcome.complete
+    from calibration.reduce import ReduceOptions, reduce_run
+
+    return reduce_run(out, ReduceOptions(bin_px=4, radiometry="certified"), progress=False)
+
+
+def _signal_fraction(run_dir, table, full_well_e: float, gain_e_per_dn: float) -> np.ndarray:
+    """ū = mean electrons of each sample's 4×4 block / full well, from the linear run's frames."""
+    from acquisition.store import RunStore
+    from calibration.decode import decode_frame
+
+    store = RunStore.open(run_dir)
+    try:
+        paths = {int(r.id): r.frame_path for r in store.captures()}
+    finally:
+        store.close()
+    cache: dict[int, np.ndarray] = {}
+    u = np.empty(len(table))
+    chans = {"R": 0, "G": 1, "B": 2}
+    for j, (cid, x, y, ch) in enumerate(
+        zip(table.extra["capture_id"], table.extra["pixel_x"], table.extra["pixel_y"],
+            table.channel.astype(str), strict=True)
+    ):  # fmt: skip
+        if cid not in cache:
+            fr = decode_frame(run_dir / paths[int(cid)])
+            cache[cid] = (fr.dn - fr.black_level) * gain_e_per_dn
+        x0, y0 = int(round(x - 1.5)), int(round(y - 1.5))
+        u[j] = cache[cid][y0 : y0 + 4, x0 : x0 + 4, chans[ch]].mean() / full_well_e
+    return u
+
+
+def test_nonlinearity_moves_f_by_beta_times_the_signal_fraction(tmp_path) -> None:
+    """A response e·(1 + β e/FW): with the lamp's certified scale (no reference target to
+    cancel it; flats are uniform, so their normalised gain is unchanged), each calibrated f is
+    multiplied by ≈ 1 + β ū, ū the sample's signal as a fraction of the full well (first order
+    in β; the block mean of e² over e adds < 1 % of the effect for these smooth images)."""
+    from acquisition.config import load_rig
+    from simulator.scene import world_scene
+
+    linear = _acquire(tmp_path / "linear", 0.0)
+    bent = _acquire(tmp_path / "bent", BETA)
+    world = world_scene(load_scene(REPO / "configs" / "scenes" / "demo.toml"),
+                        load_rig(REPO / "configs" / "rigs" / "sim.toml"))  # fmt: skip
+    key = lambda t: list(zip(t.extra["capture_id"], t.extra["pixel_x"], t.extra["pixel_y"],  # noqa: E731
+                             t.channel.astype(str), strict=True))  # fmt: skip
+    index = {k: i for i, k in enumerate(key(bent))}
+    pairs = [(i, index[k]) for i, k in enumerate(key(linear)) if k in index]
+    assert len(pairs) > 0.9 * len(linear)
+    a, b = np.array(pairs).T
+    good = (linear.flags[a] == 0) & (bent.flags[b] == 0)
+    ratio = bent.f[b][good] / linear.f[a][good]
+    u = _signal_fraction(tmp_path / "linear", linear, world.sensor.full_well_e,
+                         world.sensor.gain_e_per_dn)[a][good]  # fmt: skip
+    assert u.max() > 0.2  # the run spans a useful part of the well
+    bright = u > 0.05  # where the predicted effect (≥ 0.25 %) is well above DN rounding
+    effect = (ratio[bright] - 1.0) / (BETA * u[bright])
+    assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)

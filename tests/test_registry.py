@@ -1,0 +1,92 @@
+"""The model registry (issue 21 item 5): one dispatcher, aliases, named variants, options with
+allowed values, one-line errors naming what is allowed, groups used by the model comparison."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fitting import compare, models, registry
+from fitting.directions import uniform_hemisphere
+from fitting.ngan import COOK_TORRANCE_OPTIONS
+
+
+def test_every_entry_builds_with_its_defaults_and_declares_its_parts():
+    assert models.names() == registry.names()
+    for name in registry.names():
+        e = registry.entry(name)
+        m = registry.get(name)
+        assert m.name == name  # variants report their own name
+        assert e.summary and e.reference
+        assert {"reciprocal", "energy_conserving", "isotropic"} <= set(m.flags)
+        for o in e.options:
+            assert o.default in o.allowed
+        # a model's options rebuild it (what a fit JSON stores is enough to reload it)
+        if e.base is None:
+            assert registry.get(name, **m.options).options == m.options
+        d = registry.describe(name)
+        assert d["parameters"] == m.parameters and d["options"] == e.options
+
+
+def test_aliases_and_variants():
+    assert registry.resolve("ts") == "torrance-sparrow"
+    assert registry.resolve("ts-anisotropic") == "torrance-sparrow-anisotropic"
+    assert models.get("on").name == "oren-nayar"
+    assert set(registry.aliases().values()) <= set(registry.names())
+    # a variant is its base with options fixed — numerically identical
+    rng = np.random.default_rng(0)
+    wi, wo = uniform_hemisphere(200, rng), uniform_hemisphere(200, rng)
+    p = {"kd": 0.2, "ks": 0.7, "m": 0.2, "f0": 0.05}
+    ct = models.get("cook-torrance")
+    assert ct.options == COOK_TORRANCE_OPTIONS
+    np.testing.assert_array_equal(
+        ct.evaluate(p, wi, wo),
+        models.get("torrance-sparrow", **COOK_TORRANCE_OPTIONS).evaluate(p, wi, wo),
+    )
+    # a variant's free options stay choosable; its fixed ones cannot be changed
+    assert models.get("heavy-tail", shadowing="v-cavity").options["shadowing"] == "v-cavity"
+    with pytest.raises(ValueError, match="fixes distribution"):
+        models.get("ts-ggx-smith", distribution="beckmann")
+    models.get("ts-ggx-smith", distribution="ggx")  # restating a fixed value is fine
+
+
+def test_errors_name_what_is_allowed():
+    with pytest.raises(KeyError, match="unknown model 'cook'"):
+        models.get("cook")
+    with pytest.raises(ValueError, match="known: lambert"):
+        registry.resolve("nope")
+    assert str(registry.UnknownModelError("x y")) == "x y"  # no KeyError quotes
+    with pytest.raises(ValueError) as exc:
+        models.get("torrance-sparrow", anisotropy="0.5")
+    msg = str(exc.value)
+    assert "unknown option 'anisotropy'" in msg and "distribution: beckmann* | ggx" in msg
+    assert "\n" not in msg
+    with pytest.raises(ValueError, match="choose one of beckmann, ggx"):
+        models.get("torrance-sparrow", distribution="phong")
+    with pytest.raises(ValueError, match="takes no options"):
+        models.get("lambert", fresnel="none")
+    with pytest.raises(ValueError, match="already registered"):
+        registry.register(registry.ModelEntry("ward", models.Lambert))
+
+
+def test_group_all_and_applicable_options_drive_the_comparison():
+    assert registry.group("all") == [
+        "lambert",
+        "phong",
+        "phong-normalized",
+        "blinn-phong",
+        "torrance-sparrow",
+    ]
+    assert registry.applicable_options("lambert", {"fresnel": "none"}) == {}
+    assert registry.applicable_options("torrance-sparrow", {"fresnel": "none", "x": "1"}) == {
+        "fresnel": "none"
+    }
+    cands = compare.candidates("all", {"fresnel": "none"})
+    assert [c.model for c in cands] == registry.group("all")
+    assert {c.label: c.options for c in cands}["torrance-sparrow"] == {"fresnel": "none"}
+    # a single model by variant or alias; unknown options fail with the allowed ones
+    assert compare.candidates("ts-ggx-smith")[0].model == "ts-ggx-smith"
+    with pytest.raises(ValueError, match="unknown option 'anisotropy'"):
+        compare.candidates("torrance-sparrow", {"anisotropy": "0.5"})
+    c = compare.candidates("torrance-sparrow-anisotropic", shared=("alpha_x", "alpha_y", "phi0"))
+    assert c[0].shared == ("alpha_x", "alpha_y", "phi0")

@@ -1,0 +1,87 @@
+"""`gonio report --samples S --fit F.json [--out report.html]`: a report for a fit that did not
+come from a run (issue 16, item 3) — here an RGL file imported with `gonio import rgl`."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+from conftest import data_file
+
+
+def _run(monkeypatch, capsys, *args):
+    from gonio import cli
+
+    monkeypatch.setattr(sys, "argv", ["gonio", *map(str, args)])
+    try:
+        cli.main()
+        code = 0
+    except SystemExit as exc:
+        code = exc.code
+    return code, capsys.readouterr()
+
+
+@pytest.fixture(scope="module")
+def imported_fit(tmp_path_factory):
+    """An RGL material imported on a coarse grid and fitted with a short MCMC chain."""
+    from fitting.fit import FitOptions, fit_samples
+    from fitting.formats.convert import ImportOptions, import_samples
+    from fitting.samples import write_samples
+
+    tmp = tmp_path_factory.mktemp("fitreport")
+    grid = "theta_i=10:70:20,theta_o=0:80:10,phi_o=0:180:30"
+    table = import_samples(
+        "rgl", data_file("rgl_brdf/colodur_napoli_4f_rgb.bsdf"), ImportOptions(grid=grid)
+    )
+    samples = write_samples(tmp / "samples.parquet", table)
+    fit_samples(table, FitOptions(model="lambert", steps=120, walkers=8, seed=0), out_dir=tmp)
+    return samples, tmp / "fit-lambert.json"
+
+
+def test_report_of_any_fit(imported_fit, tmp_path, monkeypatch, capsys) -> None:
+    samples, fit = imported_fit
+    out = tmp_path / "r.html"
+    code, io = _run(monkeypatch, capsys, "report", "--samples", samples, "--fit", fit, "--out", out)
+    assert code == 0, io.err
+    assert io.out.strip().endswith("r.html")
+    page = out.read_text()
+    assert "<h2>Fit: lambert" in page and "kd_R" in page and "Trace plots" in page
+    assert "imported from format: rgl" in page and "colodur_napoli_4f_rgb.bsdf" in page
+    assert page.count("data:image/png;base64,") >= 4  # slices, residuals, traces, marginals
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["--fit", "{fit}"], "give RUN_DIR, or --samples"),
+        (["{run}", "--samples", "{samples}", "--fit", "{fit}"], "give RUN_DIR, or --samples"),
+        (["--samples", "{samples}", "--fit", "{samples}"], "cannot read"),
+    ],
+)
+def test_wrong_use_is_one_line(args, fragment, imported_fit, tmp_path, monkeypatch, capsys):
+    samples, fit = imported_fit
+    filled = [a.format(fit=fit, samples=samples, run=tmp_path) for a in args]
+    code, io = _run(monkeypatch, capsys, "report", *filled)
+    lines = [ln for ln in io.err.splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1 and fragment in lines[0], io.err
+
+
+def test_fit_of_other_samples_is_refused(imported_fit, tmp_path) -> None:
+    from fitting.formats.convert import ImportOptions, import_samples
+    from fitting.samples import write_samples
+    from gonio.errors import UserError
+    from gonio.report import write_fit_report
+
+    _, fit = imported_fit
+    other = import_samples(
+        "csv", _one_channel_csv(tmp_path), ImportOptions(sigma="rel=0.05", default_channel="Y")
+    )
+    path = write_samples(tmp_path / "y.parquet", other)
+    with pytest.raises(UserError, match="fitted channel"):
+        write_fit_report(path, fit)
+
+
+def _one_channel_csv(tmp_path):
+    p = tmp_path / "y.csv"
+    p.write_text("theta_i,phi_i,theta_o,phi_o,f\n0.1,0,0.2,3.1,0.2\n0.3,0,0.4,3.1,0.21\n")
+    return p

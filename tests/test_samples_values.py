@@ -1,0 +1,72 @@
+"""Values, not only types, in a samples table (issue 22, item 3): flags that a cast would turn
+into 0 (= good) — 2³², NaN, null, fractions, negatives — and rows with no channel name are
+refused in one line naming the column and the row; a valid table still loads."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from fitting.samples import SamplesError, SampleTable, read_samples, write_samples
+
+
+def _valid(path) -> pa.Table:
+    n = 4
+    table = SampleTable(
+        theta_i=np.full(n, 0.3),
+        phi_i=np.zeros(n),
+        theta_o=np.linspace(0.1, 0.9, n),
+        phi_o=np.full(n, np.pi),
+        channel=np.array(["G"] * n),
+        f=np.full(n, 0.2),
+        sigma=np.full(n, 0.01),
+        flags=np.zeros(n, np.int32),
+    )
+    write_samples(path, table)
+    return pq.read_table(path)
+
+
+def _with(arrow: pa.Table, name: str, values: pa.Array, path) -> None:
+    i = arrow.schema.get_field_index(name)
+    pq.write_table(arrow.set_column(i, name, values), path)
+
+
+@pytest.mark.parametrize(
+    ("values", "words"),
+    [
+        (pa.array([0, 0, 2**32, 0], pa.int64()), "row 2 holds 4.29497e+09"),
+        (pa.array([0.0, np.nan, 0.0, 0.0], pa.float64()), "row 1 holds nan"),
+        (pa.array([0, None, 0, 0], pa.int64()), "row 1 is null"),
+        (pa.array([0.0, 0.0, 0.5, 0.0], pa.float64()), "row 2 holds 0.5"),
+        (pa.array([0, 0, 0, -1], pa.int64()), "row 3 holds -1"),
+    ],
+)
+def test_flags_a_cast_would_hide_are_refused(tmp_path, values, words) -> None:
+    path = tmp_path / "s.parquet"
+    arrow = _valid(path)
+    _with(arrow, "flags", values, tmp_path / "bad.parquet")
+    with pytest.raises(SamplesError, match=words.replace("+", r"\+")):
+        read_samples(tmp_path / "bad.parquet")
+
+
+def test_a_row_without_a_channel_is_refused(tmp_path) -> None:
+    arrow = _valid(tmp_path / "s.parquet")
+    _with(arrow, "channel", pa.array(["G", None, "G", "G"]), tmp_path / "bad.parquet")
+    with pytest.raises(SamplesError, match="row 1 has no channel name"):
+        read_samples(tmp_path / "bad.parquet")
+
+
+def test_valid_flags_still_load(tmp_path) -> None:
+    arrow = _valid(tmp_path / "s.parquet")
+    _with(arrow, "flags", pa.array([0, 8, 2**31 - 1, 0], pa.int64()), tmp_path / "ok.parquet")
+    t = read_samples(tmp_path / "ok.parquet")
+    assert t.flags.tolist() == [0, 8, 2**31 - 1, 0]
+
+
+def test_dictionary_encoded_channels_still_load(tmp_path) -> None:
+    # Other tools write string columns dictionary-encoded; that is still text.
+    arrow = _valid(tmp_path / "s.parquet")
+    _with(arrow, "channel", pa.array(["G"] * 4).dictionary_encode(), tmp_path / "d.parquet")
+    assert read_samples(tmp_path / "d.parquet").channel.tolist() == ["G"] * 4
