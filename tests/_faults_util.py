@@ -205,6 +205,7 @@ def write_pty_rig(dest: Path, tty_dir: Path, **top: Any) -> Path:
         ('"dxlsim://sim-two-arm"', json.dumps(str(tty_dir / "dxl"))),
         ('"lightsim://sim-two-arm"', json.dumps(str(tty_dir / "light"))),
         ('"../scenes/demo.toml"', json.dumps(str(REPO / "configs" / "scenes" / "demo.toml"))),
+        ('"sim-camera.json"', json.dumps(str(REPO / "configs" / "rigs" / "sim-camera.json"))),
     ):
         assert old in text, old
         text = text.replace(old, new)
@@ -281,7 +282,20 @@ def _serve_and_acquire(argv: list[str]) -> int:
     from simulator.world import SimWorld
 
     rig = load_rig(ns.rig)
-    world = SimWorld(rig, load_scene(rig.scene))  # registers clock "sim" and camera "sim"
+    # The rig must open the links this launcher serves; a rig naming another session's links
+    # would reach a pty that no longer exists (or, by chance, someone else's).
+    for url, name in ((rig.bus.url, "dxl"), (rig.light.url, "light")):
+        if Path(url) != ns.tty_dir / name:
+            ap.error(f"rig {ns.rig} opens {url}, not this launcher's {ns.tty_dir / name}")
+    # The emulators live in this process (they die with it, as a rig on the same power strip
+    # would): build them as the in-process sim rig, then serve them on ptys.
+    local = rig.model_copy(
+        update={
+            "bus": rig.bus.model_copy(update={"url": "dxlsim://faults"}),
+            "light": rig.light.model_copy(update={"url": "lightsim://faults"}),
+        }
+    )
+    world = SimWorld(local, load_scene(rig.scene))  # registers clock "sim" and camera "sim"
     ns.tty_dir.mkdir(parents=True, exist_ok=True)
     bus_pty, light_pty = PtyTransport(world.bus), PtyTransport(world.light)
     _relink(ns.tty_dir / "dxl", bus_pty.port_path)

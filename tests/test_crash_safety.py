@@ -109,10 +109,14 @@ def test_kill_9_ten_times_then_complete(tmp_path: Path) -> None:
     # And the same set as an uninterrupted run of the same plan on a fresh rig (the acceptance
     # item's literal comparison): identical (pose, bracket) keys, and each pose's measured
     # angles agree within twice the arrival tolerance (each run lands anywhere inside it).
+    # The fresh rig is the same rig file on its own ptys: its bus and light URLs name the new
+    # session's links (reusing rig.toml would open the last session's stale links, which only
+    # worked when the kernel happened to hand out the same pty number again).
     ref_out = tmp_path / "uninterrupted"
-    ref_state = tmp_path / "ref_state.json"
+    ref_state, ref_tty = tmp_path / "ref_state.json", tmp_path / "tty_ref"
+    ref_rig = write_pty_rig(tmp_path / "rig_ref.toml", ref_tty)
     res = subprocess.run(
-        acquire_cmd(rig_path, plan_path, ref_out, tmp_path / "tty_ref", ref_state),
+        acquire_cmd(ref_rig, plan_path, ref_out, ref_tty, ref_state),
         capture_output=True,
         text=True,
         timeout=300,
