@@ -134,7 +134,7 @@ class Kinematics:
                 raise Unreachable(
                     f"{label} = {math.degrees(theta):.2f} deg is outside 0..{g.max_theta_deg} deg"
                 )
-        sep = math.degrees(_angle_between(pose.wi, pose.wo))
+        sep = math.degrees(separation_rad(pose))
         # 1e-9 deg of slack: a grid pose exactly at the limit (e.g. 15° vs 10° on the same
         # side) must not be rejected by rounding in the vector arithmetic.
         if sep < g.min_separation_deg - 1e-9:
@@ -171,9 +171,22 @@ class Kinematics:
         return self.geometry.camera_distance_m * spherical_to_vector(p.theta_o, p.phi_o)
 
 
-def _angle_between(a: np.ndarray, b: np.ndarray) -> float:
-    # atan2 form: accurate for both tiny and near-π angles (arccos of a dot product is not).
-    return float(np.arctan2(np.linalg.norm(np.cross(a, b)), np.dot(a, b)))
+def separation_rad(pose: Pose) -> float:
+    """Angle between the light and camera directions of a pose.
+
+    atan2(|wi × wo|, wi · wo): accurate for both tiny and near-π angles (arccos of a dot
+    product is not). Scalar arithmetic, since it runs once per planned pose: for 3-vectors
+    numpy's cross and norm cost ~100 µs a call, most of a 10⁵-pose plan's build time.
+    """
+    st_i, st_o = math.sin(pose.theta_i), math.sin(pose.theta_o)
+    a = (st_i * math.cos(pose.phi_i), st_i * math.sin(pose.phi_i), math.cos(pose.theta_i))
+    b = (st_o * math.cos(pose.phi_o), st_o * math.sin(pose.phi_o), math.cos(pose.theta_o))
+    cross = (
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    )
+    return math.atan2(math.hypot(*cross), a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
 
 
 def pose_from_vectors(wi: np.ndarray, wo: np.ndarray) -> Pose:

@@ -11,6 +11,7 @@ import numpy as np
 from acquisition.config import PlanConfig, RigConfig
 from acquisition.kinematics import Kinematics, Pose, Unreachable
 from acquisition.motion import move_time_s
+from acquisition.tours import order_poses as _order
 
 __all__ = [
     "PlannedPose",
@@ -201,6 +202,11 @@ def tour_time_s(rig: RigConfig, vectors: np.ndarray, start: np.ndarray | None = 
     return float(legs)
 
 
+def order_poses(rig: RigConfig, vectors: np.ndarray, start: np.ndarray) -> list[int]:
+    """Travel-optimal order of a plan's axis vectors from `start` (see `acquisition.tours`)."""
+    return _order({r: rig.axis(r) for r in _roles(rig)}, vectors, start)
+
+
 _MOVED = {
     "two-arm": ("light_theta", "light_phi", "camera_theta", "camera_phi"),
     "inplane": ("light_theta", "camera_theta", "sample_azimuth"),
@@ -211,55 +217,6 @@ def _roles(rig: RigConfig) -> list[str]:
     """Axes a pose moves, in the rig's [[axes]] order (so vectors and `axes` dicts agree)."""
     moved = _MOVED[rig.geometry.preset]
     return [a.role for a in rig.axes if a.role in moved]
-
-
-def order_poses(rig: RigConfig, vectors: np.ndarray, start: np.ndarray) -> list[int]:
-    """Travel-optimal order: nearest neighbour from the start pose, then 2-opt until it no
-    longer improves, on the move-time metric of `acquisition.motion` (all axes move together;
-    a leg lasts as long as its slowest axis)."""
-    n = len(vectors)
-    if n <= 2:
-        return list(range(n))
-    axes = {r: rig.axis(r) for r in _roles(rig)}
-    cost = move_time_s(axes, vectors[:, None, :], vectors[None, :, :])
-    start_cost = move_time_s(axes, start[None, :], vectors)
-    # Nearest neighbour.
-    tour = [int(np.argmin(start_cost))]
-    left = np.ones(n, dtype=bool)
-    left[tour[0]] = False
-    for _ in range(n - 1):
-        c = np.where(left, cost[tour[-1]], np.inf)
-        nxt = int(np.argmin(c))
-        tour.append(nxt)
-        left[nxt] = False
-    # Local search on the open path start → tour → (free end). Two dummy nodes make it a
-    # fixed-ends path: n = the start pose, n + 1 = the end (every edge into it costs 0), so
-    # both moves below are plain edge exchanges on one cost matrix `C`.
-    c_full = np.zeros((n + 2, n + 2))
-    c_full[:n, :n] = cost
-    c_full[n, :n] = c_full[:n, n] = start_cost
-    path = np.array([n, *tour, n + 1])
-    # Or-opt (moving runs of 1–3 poses) was tried on top: it gained 0.1 % on isotropic.toml,
-    # and changing the demo's order changes its noise realisation, so it is not used.
-    while _two_opt(c_full, path):
-        pass
-    return path[1:-1].tolist()
-
-
-def _two_opt(c: np.ndarray, p: np.ndarray) -> bool:
-    """2-opt: reverse p[i..j] when that shortens the path (moves are symmetric in time, so a
-    reversed segment costs what it did). Changes edges (i−1, i) and (j, j+1). In place."""
-    m = len(p) - 1  # p[0] and p[m] are fixed
-    improved = False
-    for i in range(1, m - 1):
-        js = np.arange(i + 1, m)
-        gain = c[p[i - 1], p[i]] + c[p[js], p[js + 1]] - c[p[i - 1], p[js]] - c[p[i], p[js + 1]]
-        k = int(np.argmax(gain))
-        if gain[k] > 1e-9:
-            j = js[k]
-            p[i : j + 1] = p[i : j + 1][::-1].copy()
-            improved = True
-    return improved
 
 
 def build_plan(rig: RigConfig, cfg: PlanConfig, start_rad: dict[str, float] | None = None) -> Plan:
@@ -460,8 +417,13 @@ def _max_leg_s(rig: RigConfig) -> float:
     return float(move_time_s(axes, lo, hi))
 
 
-def lab_time_estimate(rig: RigConfig, cfg: PlanConfig) -> LabTimeEstimate:
+def lab_time_estimate(
+    rig: RigConfig, cfg: PlanConfig, plan1: Plan | None = None
+) -> LabTimeEstimate:
     """Phase-1 lab time, and for an adaptive plan an upper bound on phase 2.
+
+    `plan1` is `build_plan(rig, cfg)` when the caller has it already (a large plan takes
+    seconds to build and order; building it twice doubles that).
 
     Phase 2 depends on where the peaks are, which is unknown before the run. Bound: for every
     incidence, the largest refine patch any pre-scan pose of that incidence could produce as
@@ -470,7 +432,8 @@ def lab_time_estimate(rig: RigConfig, cfg: PlanConfig) -> LabTimeEstimate:
     phase-2 tour within this bound (`order_within_bound`).
     """
     readout, settle = rig.camera.readout_s, rig.settle_s
-    plan1 = build_plan(rig, cfg)
+    if plan1 is None:
+        plan1 = build_plan(rig, cfg)
     phase1 = plan1.lab_time_s(readout, settle)
     if cfg.type != "adaptive":
         return LabTimeEstimate(phase1, 0.0, 0)

@@ -175,7 +175,7 @@ def acquire(out: Path | str, spec: AcquireSpec | None = None) -> AcquireResult:
         if store is not None:
             done = store.count("done")
             console.print(f"resuming {printable(out)}: {done} capture(s) already done")
-        estimate = lab_time_estimate(rig, plan_cfg)
+        estimate = lab_time_estimate(rig, plan_cfg, plan)
         if spec.announce:
             _announce(plan_cfg, plan, estimate)
         hands = ConsoleOperator() if spec.operator is None else spec.operator

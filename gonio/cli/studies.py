@@ -113,7 +113,7 @@ def _describe_plan(plan_path: Path, rig_path: Path | None, model: str | None) ->
     except KeyError as exc:
         raise UserError(str(exc).strip("'\"")) from None
     plan = build_plan(rig, cfg)
-    est = lab_time_estimate(rig, cfg)
+    est = lab_time_estimate(rig, cfg, plan)
     out.print(
         f"plan {cfg.name} on rig {rig.name}: {len(plan.poses)} poses "
         f"({len(plan.skipped)} unreachable skipped), lab time ≈ {est.phase1_s / 60:.1f} min"
