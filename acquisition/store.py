@@ -19,6 +19,7 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
+import os
 import re
 import sqlite3
 import tomllib
@@ -60,10 +61,29 @@ def _newer(what: str, version: object) -> str:
 
 
 def _unreadable(db: Path, exc: Exception) -> str:
+    if isinstance(exc, sqlite3.OperationalError) and _busy(exc):
+        # Another process holds a write lock past the bounded wait: the run is fine, and the
+        # advice for a damaged file (restore it) would overwrite a live manifest.
+        return (
+            f"{db}: in use by another process (the database stayed locked for "
+            f"{BUSY_TIMEOUT_S:.0f} s); try again when it has finished"
+        )
     return (
         f"{db}: unreadable, damaged or not an SQLite manifest ({exc}); restore it from a "
         "backup (frames/ is untouched)"
     )
+
+
+def _busy(exc: sqlite3.OperationalError) -> bool:
+    code = getattr(exc, "sqlite_errorcode", None)
+    if code is not None:
+        return code & 0xFF in (sqlite3.SQLITE_BUSY, sqlite3.SQLITE_LOCKED)
+    return "locked" in str(exc) or "busy" in str(exc)
+
+
+# How long an open or a statement waits for another process's write lock before saying the run
+# is in use (SQLite's busy timeout; a capture's transaction holds it for milliseconds).
+BUSY_TIMEOUT_S = 30.0
 
 
 def now_iso() -> str:
@@ -264,6 +284,9 @@ class RunStore:
                 store._db.executescript(_CALIBRATION_SCHEMA)
                 if int(version) < SCHEMA_VERSION:
                     store.set_meta("schema_version", str(SCHEMA_VERSION))
+        except sqlite3.DatabaseError as exc:  # locked past the busy timeout, or damaged
+            store.close()
+            raise RunStoreError(_unreadable(root / "manifest.sqlite", exc)) from None
         except BaseException:
             store.close()
             raise
@@ -273,7 +296,7 @@ class RunStore:
     def _connect(cls, root: Path, *, create: bool, writable: bool = True) -> RunStore:
         db = root / "manifest.sqlite"
         try:
-            conn = sqlite3.connect(db, timeout=30, isolation_level=None)
+            conn = cls._sqlite(db, read_only=not (create or writable))
         except sqlite3.Error as exc:
             raise RunStoreError(f"{db}: cannot open ({exc})") from None
         try:
@@ -297,6 +320,25 @@ class RunStore:
             raise RunStoreError(_unreadable(db, exc)) from None
         conn.isolation_level = "DEFERRED"
         return cls(root, conn)
+
+    @staticmethod
+    def _sqlite(db: Path, *, read_only: bool) -> sqlite3.Connection:
+        """A connection. A reader never writes to the manifest, whatever the mode; on media it
+        cannot write to (read-only mount, no permission) it opens `mode=ro`.
+
+        Why not `mode=ro` everywhere: a read-only connection cannot remove SQLite's -wal and
+        -shm side files on close, so every `runs show` would leave two new files in the run.
+        A WAL database closed cleanly has no -shm file, and SQLite must create one to read it —
+        impossible on a read-only medium; there the file cannot change under us, so it is opened
+        `immutable=1` (no locking, no -shm). Where another connection has the -shm open, it is
+        read with locking, as usual.
+        """
+        if not read_only or os.access(db.parent, os.W_OK):
+            return sqlite3.connect(db, timeout=BUSY_TIMEOUT_S, isolation_level=None)
+        uri = f"{db.resolve().as_uri()}?mode=ro"
+        if not (db.parent / f"{db.name}-shm").exists():
+            uri += "&immutable=1"
+        return sqlite3.connect(uri, uri=True, timeout=BUSY_TIMEOUT_S, isolation_level=None)
 
     @contextmanager
     def _reading(self):

@@ -75,6 +75,7 @@ from calibration.reference import (
 from calibration.texels import TexelGrid, check_replace
 from fitting.directions import vector_to_spherical
 from fitting.samples import Flags, SampleTable, write_samples
+from plumbing.atomic import check_writable_dir
 from plumbing.errors import UserError
 from plumbing.progress import Progress
 
@@ -226,6 +227,11 @@ def _reduce_open_run(
     out: str | Path | None,
     progress: bool,
 ) -> SampleTable:
+    default = "samples-texels.parquet" if options.texel_mm else "samples.parquet"
+    dest = Path(out) if out is not None else run_dir / default
+    # A run on read-only media (an archive, a colleague's share) is read, never written: say so
+    # before the reduction, not after it.
+    check_writable_dir(dest.parent, "write the samples elsewhere with --out FILE")
     cal, rig = _run_calibration(store, run_dir, options)
     by_pose = _captures_by_pose(store, run_dir)
     scale = _radiometric_scale(cal, rig)
@@ -252,8 +258,6 @@ def _reduce_open_run(
     _warn_skipped(skipped)
     budget = _budget(rig, scale, RunDocument.of(store).arm_offsets)
     table = _table(cols, {**_metadata(cal, rig, scale, skipped, monitors), **budget})
-    default = "samples-texels.parquet" if options.texel_mm else "samples.parquet"
-    dest = Path(out) if out is not None else run_dir / default
     if options.texel_mm:
         check_replace(dest, table.metadata)
     write_samples(dest, table)

@@ -21,7 +21,13 @@ from typing import BinaryIO
 
 from plumbing.errors import UserError
 
-__all__ = ["NotARegularFile", "atomic_write_bytes", "atomic_write_with", "fsync_dir"]
+__all__ = [
+    "NotARegularFile",
+    "atomic_write_bytes",
+    "atomic_write_with",
+    "fsync_dir",
+    "check_writable_dir",
+]
 
 
 class NotARegularFile(UserError, OSError):
@@ -37,6 +43,25 @@ def _refuse_special(path: Path) -> None:
     if path.exists() and not path.is_file():
         kind = "a directory" if path.is_dir() else "not a regular file (a device, FIFO or socket)"
         raise NotARegularFile(f"{path}: is {kind}; choose a file path for the output")
+
+
+def check_writable_dir(path: str | os.PathLike, hint: str) -> None:
+    """Refuse, in one line ending in `hint`, a folder gonio could not write an output into
+    (read-only medium, no permission, missing): said before minutes of work, not after."""
+    folder = Path(path)
+    if not folder.is_dir():
+        raise UserError(f"{folder}: no such folder for the output; {hint}")
+    if not os.access(folder, os.W_OK):
+        # access() says EROFS for a read-only mount even to root, who is otherwise allowed.
+        why = "read-only file system" if _read_only_mount(folder) else "no write permission"
+        raise UserError(f"{folder}: cannot write the output there ({why}); {hint}")
+
+
+def _read_only_mount(folder: Path) -> bool:
+    try:
+        return bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
 
 
 def fsync_dir(path: str | os.PathLike) -> None:

@@ -35,7 +35,15 @@ class RunLock:
         self._fd: int | None = None
 
     def acquire(self) -> RunLock:
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        except OSError as exc:
+            # A read-only medium, a folder without write permission, or a planted symlink: the
+            # run cannot be written there, whatever the lock says.
+            raise UserError(
+                f"{self.run_dir}: cannot write beside it ({self.path}: {exc.strerror}); "
+                "give an --out on a writable disk"
+            ) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

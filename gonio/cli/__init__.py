@@ -7,6 +7,7 @@ typer application (`_app`); `main` is the one place where errors meet the user: 
 
 from __future__ import annotations
 
+import errno
 import os
 import sys
 import warnings
@@ -17,6 +18,15 @@ from gonio.cli import fit, lab, studies, texels  # noqa: F401 - registers the co
 from gonio.cli._app import app, err
 
 __all__ = ["app", "main"]
+
+
+_ENVIRONMENT = {
+    errno.EROFS: "write the output to a writable disk (see the command's --out)",
+    errno.EACCES: "check the file's permissions, or write elsewhere",
+    errno.EPERM: "check the file's permissions, or write elsewhere",
+    errno.ENOSPC: "free some space and run the command again",
+    errno.EDQUOT: "free some space within your quota and run the command again",
+}
 
 
 def main() -> None:
@@ -49,6 +59,12 @@ def main() -> None:
             msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             # Plain write, not rich: rich would wrap a long path onto a second line.
             sys.stderr.write(f"error: {msg}\n")
+            sys.exit(2)
+        if isinstance(exc, OSError) and exc.errno in _ENVIRONMENT:
+            # The machine, not gonio, refused (read-only medium, permissions, full disk): the
+            # user can fix that, so it is one line naming the file, not an internal error.
+            where = f"{exc.filename}: " if exc.filename else ""
+            sys.stderr.write(f"error: {where}{exc.strerror}; {_ENVIRONMENT[exc.errno]}\n")
             sys.exit(2)
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
         sys.stderr.write(

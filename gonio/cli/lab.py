@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from gonio.cli._app import _ANSWERS, _YES, _operator, _scene_option, app, out
+from gonio.plain_text import printable
 
 
 @app.command()
@@ -123,6 +124,14 @@ def calibrate(
             "with a counted warning).",
         ),
     ] = False,
+    samples_out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            help="Samples file to write instead of the one in RUN_DIR (e.g. for a run on "
+            "read-only media).",
+        ),
+    ] = None,
 ) -> None:
     """Reduce RUN_DIR's frames to RUN_DIR/samples.parquet (per texel: samples-texels.parquet)."""
     from calibration.reduce import ReduceOptions, reduce_run
@@ -145,10 +154,11 @@ def calibrate(
         texel_mm=per_texel,
         strict=strict,
     )
-    table = reduce_run(run_dir, options, progress=True)
+    table = reduce_run(run_dir, options, out=samples_out, progress=True)
     name = "samples.parquet" if per_texel is None else "samples-texels.parquet"
+    dest = samples_out if samples_out is not None else run_dir / name
     texels = "" if per_texel is None else f" in {len(set(table.extra['texel'].tolist()))} texels"
-    out.print(f"{run_dir / name}: {len(table)} samples{texels}")
+    out.print(f"{printable(dest)}: {len(table)} samples{texels}", markup=False)
     _print_budget(table)
 
 
