@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from acquisition.protocols import DeviceFault, Frame
+from plumbing.inputs import FRAME_MAX_BYTES, read_input_bytes
 
 __all__ = ["FolderCamera", "folder_camera"]
 
@@ -103,7 +104,7 @@ class FolderCamera:
                 )
             time.sleep(self.poll_s)
         path = self.folder / name
-        data = path.read_bytes()
+        data = read_input_bytes(path, "frame", FRAME_MAX_BYTES)
         self._seen.add(name)
         if len(data) != size:  # changed between the stability check and the read
             raise DeviceFault(f"camera folder {self.folder}: {name} changed while being read")

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from acquisition.store import now_iso
+from plumbing.inputs import GiB, read_input_text
 
 __all__ = ["LOG_NAME", "RunLog", "read_log"]
 
@@ -89,4 +90,5 @@ def read_log(path: Path | str) -> list[dict[str, Any]]:
         p = p / LOG_NAME
     if not p.exists():
         return []
-    return [json.loads(line) for line in p.read_text().splitlines() if line.strip()]
+    text = read_input_text(p, "run log", GiB)
+    return [json.loads(line) for line in text.splitlines() if line.strip()]

@@ -40,6 +40,7 @@ from acquisition.protocols import DeviceFault, Frame, FrameLevels
 from acquisition.rig import Rig
 from acquisition.runlog import LOG_NAME, RunLog
 from acquisition.store import CaptureRecord, CaptureStart, RunStore
+from plumbing.inputs import FRAME_MAX_BYTES, read_input_bytes
 from plumbing.progress import Progress, progress
 
 __all__ = ["RunOutcome", "run_acquisition", "stop_requests", "safe_stop"]
@@ -202,7 +203,7 @@ def _stats_of(ses: _Session, rec: _Done, cfg: PlanConfig) -> FrameStats:
     else:
         path = ses.store.root / rec.frame_path
         try:
-            frame = Frame(path.read_bytes(), path.suffix.lower(), {})
+            frame = Frame(read_input_bytes(path, "frame", FRAME_MAX_BYTES), path.suffix.lower(), {})
             st = frame_stats(
                 _levels_of(ses, frame, rec.axes_measured), rec.exposure_s, cfg.auto_exposure
             )

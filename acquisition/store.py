@@ -32,6 +32,7 @@ from typing import Any
 from plumbing.atomic import atomic_write_bytes
 from plumbing.errors import UserError
 from plumbing.hashing import sha256_file
+from plumbing.inputs import MiB, open_input
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -395,7 +396,7 @@ class RunStore:
         """The frozen configs of run.toml; refused when written by a newer gonio."""
         path = self.root / "run.toml"
         try:
-            with open(path, "rb") as fh:
+            with open_input(path, "run.toml", 16 * MiB) as fh:
                 doc = tomllib.load(fh)
         except tomllib.TOMLDecodeError as exc:
             raise RunStoreError(

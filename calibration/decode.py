@@ -35,6 +35,7 @@ import numpy as np
 
 from plumbing.errors import UserError
 from plumbing.hashing import sha256_file
+from plumbing.inputs import FRAME_MAX_BYTES, NotAnInputFile, check_input
 
 __all__ = [
     "DecodedFrame",
@@ -165,8 +166,12 @@ def decode_frame(path, sha256: str | None = None) -> DecodedFrame:
     for its capture. Costs one read of the file (~50 ms for a 25 MB RAW)."""
     p = Path(path)
     suffix = p.suffix.lower()
-    if not p.is_file():
-        raise FrameError(f"{p}: no such file")
+    try:
+        check_input(p, "frame", FRAME_MAX_BYTES)
+    except FileNotFoundError:
+        raise FrameError(f"{p}: no such file") from None
+    except NotAnInputFile as exc:  # a FIFO or device in frames/ would block the reduction
+        raise FrameError(str(exc)) from None
     if sha256 is not None and sha256_file(p) != sha256:
         changed = "SHA-256 differs from the manifest's (changed or swapped since capture)"
         try:

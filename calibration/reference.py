@@ -55,6 +55,7 @@ from calibration.darks import (
     calibration_take_description,
 )
 from plumbing.atomic import atomic_write_bytes
+from plumbing.inputs import MiB, check_input, open_input
 
 __all__ = [
     "REFERENCE_KIND",
@@ -174,9 +175,10 @@ def load_f_ref_table(path: str | Path) -> FRefTable:
     path = Path(path)
     try:
         if path.suffix.lower() == ".toml":
-            with open(path, "rb") as fh:
+            with open_input(path, "f_ref table", 16 * MiB) as fh:
                 rows = tomllib.load(fh).get("point", [])
         else:
+            check_input(path, "f_ref table", 16 * MiB)
             with open(path, newline="") as fh:
                 rows = [
                     {k.strip(): v for k, v in r.items()}

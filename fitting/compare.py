@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from plumbing.inputs import MiB, read_input_text
+
 __all__ = [
     "COMPARE_SCHEMA_VERSION",
     "KHAT_BAD",
@@ -374,7 +376,7 @@ def read_compare(path: str | os.PathLike) -> list[dict]:
     """Rows of a compare.json (raises ValueError with one line if it is not one)."""
     path = Path(path)
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(read_input_text(path, "compare.json", 256 * MiB))
         rows = doc["models"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{path}: not a compare.json ({type(exc).__name__})") from None

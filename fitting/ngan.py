@@ -39,6 +39,8 @@ import os
 import re
 from pathlib import Path
 
+from plumbing.inputs import MiB, read_input_text
+
 __all__ = [
     "NGAN_MODELS",
     "read_ngan_fits",
@@ -91,7 +93,8 @@ def read_ngan_fits(path: str | os.PathLike) -> dict[str, dict[str, Value]]:
     """
     path = Path(path)
     fits: dict[str, dict[str, Value]] = {}
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    text = read_input_text(path, "fit table", 256 * MiB)
+    for lineno, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue

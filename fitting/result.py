@@ -32,6 +32,7 @@ from pathlib import Path
 
 from plumbing.atomic import atomic_write_bytes
 from plumbing.errors import UserError
+from plumbing.inputs import MiB, read_input_text
 
 __all__ = [
     "FIT_SCHEMA_VERSION",
@@ -154,7 +155,7 @@ def read_fit(path: str | os.PathLike) -> FitResult:
     """Read and validate ``fit-<model>.json``."""
     path = Path(path)
     try:
-        d = json.loads(path.read_text(encoding="utf-8"))
+        d = json.loads(read_input_text(path, "fit result", 256 * MiB))
     except FileNotFoundError:
         raise FitResultError(f"{path}: no such fit result") from None
     except json.JSONDecodeError as exc:

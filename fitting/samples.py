@@ -22,6 +22,7 @@ import pyarrow.parquet as pq
 from fitting.directions import spherical_to_vector
 from plumbing.atomic import atomic_write_with
 from plumbing.errors import UserError
+from plumbing.inputs import check_input
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -218,6 +219,7 @@ def read_samples(path: str | os.PathLike, *, merge_duplicates: bool = False) -> 
         raise SamplesError(f"{path}: no such file")
     if path.is_dir():
         raise SamplesError(f"{path}: is a directory, expected a samples .parquet file")
+    check_input(path, "samples table")  # a FIFO or device would block or never end
     try:
         arrow = pq.read_table(path)
     except Exception as exc:  # pyarrow raises several types for a non-Parquet file

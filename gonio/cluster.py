@@ -22,6 +22,7 @@ import numpy as np
 
 from gonio.errors import UserError
 from plumbing.hashing import sha256_file
+from plumbing.inputs import MiB, read_input_text
 
 __all__ = [
     "dask_client",
@@ -61,7 +62,7 @@ def claim_out_dir(out_dir: Path, record: dict) -> str:
     text = json.dumps(record, indent=1, sort_keys=True)
     if path.exists():
         try:
-            old = json.loads(path.read_text())
+            old = json.loads(read_input_text(path, "job record", 16 * MiB))
         except (OSError, ValueError):
             raise UserError(
                 f"{path}: unreadable; remove {out_dir} or choose another --out"

@@ -17,6 +17,7 @@ from typing import TypeVar
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from plumbing.errors import UserError
+from plumbing.inputs import MiB, open_input
 
 __all__ = [
     "ConfigError",
@@ -171,7 +172,7 @@ def load_config_data(path: Path | str) -> dict:
             f"{path.suffix or 'files without a suffix'!r}; convert it to TOML"
         )
     try:
-        with open(path, "rb") as fh:
+        with open_input(path, "config file", 16 * MiB) as fh:
             if path.suffix.lower() == ".json":
                 data = json.load(fh)
                 if not isinstance(data, dict):

@@ -31,8 +31,10 @@ def sniff_format(path) -> str | None:
     """ "rgl", "merl" or "csv" when the file looks like one (by its first bytes), else None."""
     import os
 
+    from plumbing.inputs import open_input
+
     try:
-        with open(path, "rb") as fh:
+        with open_input(path, "data file") as fh:
             head = fh.read(4096)
         size = os.path.getsize(path)
     except OSError:

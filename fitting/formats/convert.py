@@ -15,6 +15,7 @@ import numpy as np
 from fitting.formats.common import FormatError, parse_grid, parse_sigma
 from fitting.formats.guards import check_samples
 from fitting.samples import SampleTable
+from plumbing.inputs import DATA_MAX_BYTES, check_input
 
 __all__ = ["IMPORT_FORMATS", "EXPORT_FORMATS", "ImportOptions", "import_samples", "export_file"]
 
@@ -67,8 +68,9 @@ def import_samples(fmt: str, path: str | os.PathLike, options: ImportOptions) ->
     path = Path(path)
     if fmt not in IMPORT_FORMATS:
         raise FormatError(f"unknown import format {fmt!r}; use one of {', '.join(IMPORT_FORMATS)}")
-    if not path.is_file():
+    if not path.exists():
         raise FormatError(f"{path}: no such file")
+    check_input(path, f"{fmt} file", DATA_MAX_BYTES)  # FIFO, device, directory: one line
     _not_for(fmt, options)
     grid = None if options.grid in (None, "measured") else parse_grid(options.grid)
     if fmt == "rgl":

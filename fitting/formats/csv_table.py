@@ -32,6 +32,7 @@ import numpy as np
 from fitting.formats.common import FormatError, SigmaRule, provenance
 from fitting.samples import SampleTable
 from plumbing.atomic import atomic_write_bytes
+from plumbing.inputs import DATA_MAX_BYTES, read_input_bytes
 
 __all__ = ["CsvOptions", "read_csv_table", "write_csv_table", "csv_text"]
 
@@ -53,7 +54,7 @@ class CsvOptions:
 
 def _read_rows(path: Path, delimiter: str | None) -> tuple[list[str], list[list[str]]]:
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        text = read_input_bytes(path, "table", DATA_MAX_BYTES).decode("utf-8-sig")
     except UnicodeDecodeError:
         raise FormatError(f"{path}: not a text table (not UTF-8); export it as CSV") from None
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]

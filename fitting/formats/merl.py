@@ -38,6 +38,7 @@ from fitting.formats.common import FormatError, SigmaRule, grid_directions, prov
 from fitting.rusinkiewicz import from_half_diff, to_half_diff
 from fitting.samples import SampleTable
 from plumbing.atomic import atomic_write_bytes
+from plumbing.inputs import MiB, read_input_bytes
 
 __all__ = [
     "DIMS",
@@ -119,7 +120,7 @@ def _centre_directions() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def read_merl(path: str | os.PathLike) -> MerlTable:
     """Read a MERL ``.binary`` file; FormatError naming the file when it is not one."""
     path = Path(path)
-    data = path.read_bytes()
+    data = read_input_bytes(path, "MERL .binary file", 64 * MiB)  # one is 33.6 MB
     if len(data) < 12:
         raise FormatError(f"{path}: not a MERL .binary file (shorter than its 12-byte header)")
     dims = tuple(int(x) for x in np.frombuffer(data, "<i4", 3))

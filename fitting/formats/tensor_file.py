@@ -29,6 +29,7 @@ import numpy as np
 
 from fitting.formats.common import FormatError
 from plumbing.atomic import atomic_write_bytes
+from plumbing.inputs import DATA_MAX_BYTES, read_input_bytes
 
 __all__ = ["MAGIC", "read_tensor_file", "write_tensor_file", "tensor_file_bytes", "is_tensor_file"]
 
@@ -62,7 +63,7 @@ def read_tensor_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """All fields of a tensor file, in file order, as read-only numpy arrays of their dtype and
     shape. FormatError (one line, naming the file) for anything that is not a valid file."""
     path = Path(path)
-    data = path.read_bytes()
+    data = read_input_bytes(path, "RGL .bsdf file", DATA_MAX_BYTES)
     if len(data) < 18 or data[:12] != MAGIC:
         raise FormatError(
             f"{path}: not an RGL tensor file (no 'tensor_file' header); RGL materials are the "

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from plumbing.atomic import atomic_write_bytes
+from plumbing.inputs import GiB, check_input
 
 __all__ = [
     "sim_rig",
@@ -54,6 +55,7 @@ def write_rows(
 
 def read_rows(path: Path, convert: Callable[[str, str], Any]) -> list[dict[str, Any]]:
     """Rows of a study CSV, each value through `convert(column, text)`."""
+    check_input(path, "study CSV", GiB)
     with open(path, newline="") as fh:
         return [{k: convert(k, v) for k, v in r.items()} for r in csv.DictReader(fh)]
 
