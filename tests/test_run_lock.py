@@ -21,7 +21,10 @@ def _cmd(out: Path) -> list[str]:
     return [
         sys.executable, "-m", "gonio.cli", "acquire",
         "--rig", str(REPO / "configs" / "rigs" / "sim.toml"),
-        "--plan", str(REPO / "configs" / "plans" / "demo.toml"),
+        # isotropic.toml (≈ 308 poses × 2 brackets), not the demo plan: the first writer must
+        # outlast the second command's start-up and refusal on a slow, loaded machine (with the
+        # demo plan it finished in between once, under the full suite).
+        "--plan", str(REPO / "configs" / "plans" / "isotropic.toml"),
         "--out", str(out), "--no-progress", "--yes",
     ]  # fmt: skip
 
@@ -40,6 +43,7 @@ def test_second_writer_is_refused_and_a_killed_one_leaves_no_lock(tmp_path: Path
         lines = [ln for ln in second.stderr.splitlines() if ln.strip()]
         assert second.returncode == 2 and len(lines) == 1, second.stderr
         assert f"in use by another gonio process (PID {first.pid})" in lines[0], lines[0]
+        assert first.poll() is None, "the first acquisition ended before it could be killed"
     finally:
         os.kill(first.pid, signal.SIGKILL)
         first.wait()
