@@ -46,11 +46,14 @@ def trapezoid_time_s(distance: np.ndarray | float, v: float, a: float) -> np.nda
 
 
 def move_time_s(axes: dict[str, AxisConfig], start: np.ndarray, end: np.ndarray) -> np.ndarray:
-    """Move time between axis vectors (…, n_axes) ordered like `axes`; the slowest axis wins."""
-    start = np.asarray(start, dtype=np.float64)
-    end = np.asarray(end, dtype=np.float64)
-    times = [
-        trapezoid_time_s(end[..., j] - start[..., j], axis_speed_rad_s(ax), axis_accel_rad_s2(ax))
-        for j, ax in enumerate(axes.values())
-    ]
-    return np.max(np.stack(times, axis=-1), axis=-1)
+    """Move time between axis vectors (…, n_axes) ordered like `axes`; the slowest axis wins.
+
+    `trapezoid_time_s` for all axes at once (per-axis speed and acceleration as arrays): the
+    planner calls this for every candidate leg of a large plan. With infinite acceleration the
+    ramp v/a and the threshold v²/a are 0, so every leg cruises, as in `trapezoid_time_s`.
+    """
+    v = np.array([axis_speed_rad_s(ax) for ax in axes.values()])
+    a = np.array([axis_accel_rad_s2(ax) for ax in axes.values()])
+    d = np.abs(np.asarray(end, dtype=np.float64) - np.asarray(start, dtype=np.float64))
+    t = np.where(d >= v * v / a, d / v + v / a, 2.0 * np.sqrt(d / a))
+    return t.max(axis=-1)

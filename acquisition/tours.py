@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from acquisition.config import AxisConfig
-from acquisition.motion import axis_accel_rad_s2, axis_speed_rad_s, move_time_s
+from acquisition.motion import axis_speed_rad_s, move_time_s
 
 __all__ = ["order_poses", "DENSE_MAX_POSES"]
 
@@ -83,30 +83,6 @@ def _two_opt(c: np.ndarray, p: np.ndarray) -> bool:
     return improved
 
 
-class _Profile:
-    """Per-axis speed, acceleration and triangle/trapezoid threshold as arrays, so a batch of
-    legs costs a handful of array operations (`move_time_s` loops over axes in Python, which
-    dominates when it is called once per pose)."""
-
-    def __init__(self, axes: dict[str, AxisConfig]) -> None:
-        self.speed_rad_s = np.array([axis_speed_rad_s(a) for a in axes.values()])
-        self.accel_rad_s2 = np.array([axis_accel_rad_s2(a) for a in axes.values()])
-        # With infinite acceleration, v/a = 0 and the threshold v²/a = 0: every leg cruises.
-        self.reach_rad = self.speed_rad_s**2 / self.accel_rad_s2
-        self.ramp_s = self.speed_rad_s / self.accel_rad_s2
-
-
-def _leg_s(profile: _Profile, delta: np.ndarray) -> np.ndarray:
-    """`move_time_s` for legs `delta` (…, n_axes) — the same trapezoid (motion.trapezoid_time_s)."""
-    d = np.abs(delta)
-    t = np.where(
-        d >= profile.reach_rad,
-        d / profile.speed_rad_s + profile.ramp_s,
-        2.0 * np.sqrt(d / profile.accel_rad_s2),
-    )
-    return t.max(axis=-1)
-
-
 def _nearest_neighbour_kdtree(
     axes: dict[str, AxisConfig], vectors: np.ndarray, start: np.ndarray
 ) -> np.ndarray:
@@ -120,18 +96,17 @@ def _nearest_neighbour_kdtree(
     unvisited poses (rebuilt whenever half of it has been visited, so such a query finds a free
     pose among few candidates). Work O(n log n), memory O(n · CANDIDATES).
     """
-    profile = _Profile(axes)
-    pts = vectors / profile.speed_rad_s
+    pts = vectors / np.array([axis_speed_rad_s(a) for a in axes.values()])
     n = len(vectors)
     k = min(CANDIDATES + 1, n)
     _, near = cKDTree(pts).query(pts, k=k, p=np.inf, workers=-1)
     near = near[:, 1:]  # drop the pose itself
-    legs = _leg_s(profile, vectors[near] - vectors[:, None, :])
+    legs = move_time_s(axes, vectors[:, None, :], vectors[near])
     near = np.take_along_axis(near, np.argsort(legs, axis=1, kind="stable"), axis=1)
 
     visited = np.zeros(n, dtype=bool)
     tour = np.empty(n, dtype=np.int64)
-    tour[0] = int(np.argmin(_leg_s(profile, vectors - start)))
+    tour[0] = int(np.argmin(move_time_s(axes, start, vectors)))
     visited[tour[0]] = True
     alive = np.flatnonzero(~visited)
     tree: cKDTree | None = None
@@ -154,7 +129,7 @@ def _nearest_neighbour_kdtree(
                 if len(cand) or q == len(alive):
                     break
                 q *= 4
-            nxt = int(cand[int(np.argmin(_leg_s(profile, vectors[cand] - vectors[here])))])
+            nxt = int(cand[int(np.argmin(move_time_s(axes, vectors[here], vectors[cand])))])
         tour[t] = nxt
         visited[nxt] = True
         used += 1
