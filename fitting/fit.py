@@ -267,6 +267,7 @@ def fit_samples(
         n_samples=int(lik.n),
         wall_time_s=time.perf_counter() - t0,
         fixed=dict(space.fixed),
+        samples_sha256=table.source_sha256,
         extras=extras,
     )
     # The verdicts (fitting.verdicts); "converged" then means their stated criteria.

@@ -9,7 +9,8 @@
      "goodness": {"chi2", "dof", "chi2_red", "aic", "bic", "n"},
      "n_samples", "wall_time_s",
      "fixed": {NAME: value},        (optional: parameters held fixed with --fix)
-     "verdicts": [{"name", "status", "reason", "advice"}, …]}   (optional, issue 18)
+     "verdicts": [{"name", "status", "reason", "advice"}, …],   (optional, issue 18)
+     "samples_sha256": HEX}         (optional, issue 22: SHA-256 of the samples file fitted)
 
 ``diagnostics`` also holds, in fits written since issue 18, ``converged_because`` (one line:
 the criteria met, or "not converged: " and those that failed) and ``failed_criteria`` (their
@@ -43,6 +44,7 @@ __all__ = [
     "TOP_KEYS",
     "FitResult",
     "FitResultError",
+    "check_samples_match",
     "read_fit",
 ]
 
@@ -97,6 +99,9 @@ class FitResult:
     fixed: dict[str, float] = field(default_factory=dict)
     #: The fit's verdicts (fitting.verdicts), None for a file written before they existed.
     verdicts: list[dict] | None = None
+    #: SHA-256 of the samples file the fit was made from (None: fitted from memory, or a fit
+    #: written before issue 22); `check_samples_match` compares it with a file.
+    samples_sha256: str | None = None
     # Not serialised: in-memory extras for callers (chain, LSQ result, likelihood).
     extras: dict = field(default_factory=dict, repr=False, compare=False)
 
@@ -108,6 +113,8 @@ class FitResult:
             out["fixed"] = {str(k): float(v) for k, v in self.fixed.items()}
         if self.verdicts is not None:
             out["verdicts"] = [dict(v) for v in self.verdicts]
+        if self.samples_sha256 is not None:
+            out["samples_sha256"] = self.samples_sha256
         return _clean(out)
 
     def value(self, name: str, key: str = "median") -> float:
@@ -205,4 +212,27 @@ def read_fit(path: str | os.PathLike) -> FitResult:
             f"{path}: verdicts: expected a list of {{{', '.join(sorted(VERDICT_KEYS))}}}; "
             "refit to rewrite it"
         )
-    return FitResult(**{k: d[k] for k in TOP_KEYS}, fixed=dict(fixed), verdicts=verdicts)
+    sha = d.get("samples_sha256")
+    if sha is not None and not (
+        isinstance(sha, str) and len(sha) == 64 and all(c in "0123456789abcdef" for c in sha)
+    ):
+        raise FitResultError(
+            f"{path}: samples_sha256: expected 64 lowercase hex digits; refit to rewrite it"
+        )
+    return FitResult(
+        **{k: d[k] for k in TOP_KEYS}, fixed=dict(fixed), verdicts=verdicts, samples_sha256=sha
+    )
+
+
+def check_samples_match(fit_path, fit: dict | FitResult, samples_path, samples_sha256) -> None:  # noqa: ANN001
+    """Refuse, in one line, a samples file other than the one the fit was made from (issue 22:
+    a report of fit F drawn over other data would show residuals that mean nothing). Fits that
+    recorded no hash (older files, in-memory fits) pass."""
+    want = fit.get("samples_sha256") if isinstance(fit, dict) else fit.samples_sha256
+    if want is None or samples_sha256 is None or want == samples_sha256:
+        return
+    raise FitResultError(
+        f"{fit_path}: was fitted to a samples file with SHA-256 {want[:16]}…, but "
+        f"{samples_path} has {samples_sha256[:16]}… (recalibrated or replaced since); refit it "
+        "or give the samples it was made from"
+    )

@@ -22,6 +22,7 @@ import pyarrow.parquet as pq
 from fitting.directions import spherical_to_vector
 from plumbing.atomic import atomic_write_with
 from plumbing.errors import UserError
+from plumbing.hashing import sha256_file
 from plumbing.inputs import check_input
 
 __all__ = [
@@ -86,6 +87,9 @@ class SampleTable:
     flags: np.ndarray
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     metadata: dict[str, str] = field(default_factory=dict)
+    #: SHA-256 of the file the table was read from (None when built in memory); a fit records
+    #: it so that a report or export can tell whether it is given the samples the fit used.
+    source_sha256: str | None = None
 
     def __len__(self) -> int:
         return int(self.f.shape[0])
@@ -123,6 +127,7 @@ class SampleTable:
             flags=self.flags[mask],
             extra={k: v[mask] for k, v in self.extra.items()},
             metadata=dict(self.metadata),
+            source_sha256=self.source_sha256,
         )
 
     def good(self) -> SampleTable:
@@ -299,4 +304,6 @@ def read_samples(path: str | os.PathLike, *, merge_duplicates: bool = False) -> 
     )
     from fitting.formats.guards import check_samples  # here: guards import this module
 
-    return check_samples(table, str(path), merge_duplicates_rows=merge_duplicates)
+    table = check_samples(table, str(path), merge_duplicates_rows=merge_duplicates)
+    table.source_sha256 = sha256_file(path)
+    return table

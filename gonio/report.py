@@ -309,7 +309,7 @@ def write_report(run_dir: Path | str, compute_times_s: dict[str, float] | None =
 
 
 def _write_report(run_dir: Path, store: RunStore, compute_times_s: dict[str, float] | None) -> Path:
-    from fitting.result import read_fit
+    from fitting.result import check_samples_match, read_fit
     from gonio.errors import UserError
 
     cfg = store.run_config()  # the report shows what the run froze, tolerant of old runs
@@ -326,6 +326,8 @@ def _write_report(run_dir: Path, store: RunStore, compute_times_s: dict[str, flo
     # read_fit checks every key the page uses, so a damaged or foreign fit file is one line
     # naming it, not a KeyError halfway through the page.
     fits = [read_fit(p).to_dict() for p in fit_paths]
+    for p, fit in zip(fit_paths, fits, strict=True):
+        check_samples_match(p, fit, samples_path, samples.source_sha256)
     plots.import_plotting()
     labels = [p.stem[len("fit-") :] for p in fit_paths]
     best = _best_label(run_dir)
@@ -400,12 +402,13 @@ def write_fit_report(
     """``report.html`` for any fit: the samples table and fit JSON it was made from (the chain
     ``fit-<label>.h5`` beside the JSON is used when present). Default ``out``: report.html
     beside the fit JSON."""
-    from fitting.result import read_fit
+    from fitting.result import check_samples_match, read_fit
     from gonio.errors import UserError
 
     samples_path, fit_path = Path(samples_path), Path(fit_path)
     samples = read_samples(samples_path)
     fit = read_fit(fit_path).to_dict()
+    check_samples_match(fit_path, fit, samples_path, samples.source_sha256)
     missing = [c for c in fit["channels"] if c not in samples.channels]
     if missing:
         raise UserError(

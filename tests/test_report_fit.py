@@ -85,3 +85,31 @@ def _one_channel_csv(tmp_path):
     p = tmp_path / "y.csv"
     p.write_text("theta_i,phi_i,theta_o,phi_o,f\n0.1,0,0.2,3.1,0.2\n0.3,0,0.4,3.1,0.21\n")
     return p
+
+
+def test_report_refuses_samples_the_fit_was_not_made_from(imported_fit, tmp_path) -> None:
+    """Issue 22, item 2: the fit records its samples file's SHA-256, and a report of it over a
+    recalibrated table (same channels and shape, one value changed) is refused in one line;
+    the file it was made from is accepted. On the previous code both were reported."""
+    import dataclasses
+
+    from fitting.fit import FitOptions, fit_samples
+    from fitting.result import FitResultError, read_fit
+    from fitting.samples import read_samples, write_samples
+    from gonio.report import write_fit_report
+    from plumbing.hashing import sha256_file
+
+    samples, _ = imported_fit
+    table = read_samples(samples)
+    assert table.source_sha256 == sha256_file(samples)
+    fit_samples(table, FitOptions(model="lambert", mcmc=False, seed=0), out_dir=tmp_path)
+    fit = tmp_path / "fit-lambert.json"
+    assert read_fit(fit).samples_sha256 == sha256_file(samples)
+    write_fit_report(samples, fit, tmp_path / "same.html")  # the samples it was made from
+    f = table.f.copy()
+    f[0] *= 1.01
+    changed = write_samples(tmp_path / "recalibrated.parquet", dataclasses.replace(table, f=f))
+    with pytest.raises(FitResultError, match="was fitted to a samples file with SHA-256") as e:
+        write_fit_report(changed, fit, tmp_path / "other.html")
+    assert "\n" not in str(e.value) and "recalibrated.parquet" in str(e.value)
+    assert not (tmp_path / "other.html").exists()
