@@ -40,7 +40,7 @@ def _clean(d: Any) -> Any:
 class RunDocument(BaseModel):
     """The typed run.toml (see module doc)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     schema_version: int = SCHEMA_VERSION
     gonio: dict[str, str]

@@ -19,6 +19,7 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
+import math
 import os
 import re
 import sqlite3
@@ -48,6 +49,23 @@ __all__ = [
 
 # 2: calibration captures (darks, flats, reference target) in the manifest's own table.
 SCHEMA_VERSION = 2
+
+
+def _check_values(exposure_s, angles_rad, lab_time_s) -> None:  # noqa: ANN001
+    """Values of a manifest row, not only types (issue 22): a finite positive exposure, finite
+    angles with θ in [0°, 180°], a finite non-negative lab time. SQLite stores whatever it is
+    given, and an exposure of 0 would divide every radiance of that frame by zero."""
+    if not (_real(exposure_s) and 0 < exposure_s < 1e6):
+        raise ValueError(f"exposure_s {exposure_s!r} is not a positive number of seconds")
+    for k, v in zip(("theta_i", "phi_i", "theta_o", "phi_o"), angles_rad, strict=False):
+        if not _real(v) or (k.startswith("theta") and not 0 <= v <= math.pi):
+            raise ValueError(f"{k} {v!r} is not an angle in radians")
+    if lab_time_s is not None and not (_real(lab_time_s) and lab_time_s >= 0):
+        raise ValueError(f"lab_time_s {lab_time_s!r} is not a non-negative time")
+
+
+def _real(v) -> bool:  # noqa: ANN001
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
 
 class RunStoreError(UserError, RuntimeError):
@@ -548,6 +566,7 @@ class RunStore:
 
     @staticmethod
     def _record(r: tuple) -> CaptureRecord:
+        _check_values(r[3], r[4:8], r[15])
         return CaptureRecord(
             id=r[0],
             pose_index=r[1],
@@ -701,6 +720,13 @@ class RunStore:
             self._rel_path(r[5], r[0])
             try:
                 meta, fmeta = json.loads(r[8] or "{}"), json.loads(r[9] or "{}")
+            except ValueError as exc:
+                raise RunStoreError(
+                    f"{self.root}/manifest.sqlite: calibration capture {r[0]} is damaged "
+                    f"({exc}); restore the manifest from a backup"
+                ) from None
+            try:
+                _check_values(r[4], (), None)
             except ValueError as exc:
                 raise RunStoreError(
                     f"{self.root}/manifest.sqlite: calibration capture {r[0]} is damaged "

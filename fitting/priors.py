@@ -173,6 +173,13 @@ class ParameterSpace:
                     continue
                 if not lower < upper:
                     raise PriorsError(f"prior for {fitted}: lower {lower} must be below {upper}")
+                if not p.lower <= lower < upper <= p.upper:
+                    # The model's range is where it is defined and evaluated safely (kd < 0
+                    # gives negative f, m ≤ 0 a division by zero): a prior narrows it.
+                    raise PriorsError(
+                        f"prior for {fitted}: [{lower:g}, {upper:g}] is outside {p.name}'s range "
+                        f"[{p.lower:g}, {p.upper:g}]; a prior may narrow that range, not widen it"
+                    )
                 if p.log and lower <= 0:
                     raise PriorsError(
                         f"prior for {fitted}: log-uniform needs lower > 0, got {lower}"

@@ -158,6 +158,10 @@ class FitResult:
         return atomic_write_bytes(path, text.encode(), overwrite=True)
 
 
+def _is_number(v) -> bool:  # noqa: ANN001
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
 def read_fit(path: str | os.PathLike) -> FitResult:
     """Read and validate ``fit-<model>.json``."""
     path = Path(path)
@@ -193,16 +197,32 @@ def read_fit(path: str | os.PathLike) -> FitResult:
             raise FitResultError(
                 f"{path}: parameters.{name}: missing {', '.join(gaps)}; refit to rewrite it"
             )
+        for k in PARAMETER_KEYS[1:]:  # numbers, or null where a value was not finite
+            v = p[k]
+            if v is not None and not (_is_number(v) and math.isfinite(v)):
+                raise FitResultError(
+                    f"{path}: parameters.{name}.{k}: expected a finite number or null "
+                    f"(got {v!r}); refit to rewrite it"
+                )
     for key, kind in (("options", dict), ("diagnostics", dict), ("goodness", dict)):
         if not isinstance(d[key], kind):
             raise FitResultError(f"{path}: {key}: expected a JSON object; refit to rewrite it")
-    if not isinstance(d["channels"], list):
-        raise FitResultError(f"{path}: channels: expected a list; refit to rewrite it")
+    if not isinstance(d["channels"], list) or not all(
+        isinstance(c, str) and c for c in d["channels"]
+    ):
+        raise FitResultError(f"{path}: channels: expected a list of names; refit to rewrite it")
+    n = d["n_samples"]
+    if not (_is_number(n) and float(n).is_integer() and n >= 0):
+        raise FitResultError(
+            f"{path}: n_samples: expected a count (got {n!r}); refit to rewrite it"
+        )
     fixed = d.get("fixed", {})
     if not isinstance(fixed, dict) or not all(
-        isinstance(v, int | float) and not isinstance(v, bool) for v in fixed.values()
+        _is_number(v) and math.isfinite(v) for v in fixed.values()
     ):
-        raise FitResultError(f"{path}: fixed: expected {{NAME: number}}; refit to rewrite it")
+        raise FitResultError(
+            f"{path}: fixed: expected {{NAME: finite number}}; refit to rewrite it"
+        )
     verdicts = d.get("verdicts")
     if verdicts is not None and (
         not isinstance(verdicts, list)

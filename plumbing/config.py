@@ -38,7 +38,7 @@ class ConfigError(UserError, ValueError):
 class Strict(BaseModel):
     """The base of every config model: unknown keys are errors, values are frozen."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 # Units live in key names (`distance_m`, `exposure_s`, `min_deg`), never in values: a value

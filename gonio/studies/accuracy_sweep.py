@@ -350,7 +350,7 @@ _INT_COLUMNS = (
 
 def read_csv(path: Path) -> list[dict[str, Any]]:
     """The rows as the sweep made them: text, integer and float columns."""
-    return read_typed_rows(path, _TEXT_COLUMNS, _INT_COLUMNS)
+    return read_typed_rows(path, _TEXT_COLUMNS, _INT_COLUMNS, required=CSV_COLUMNS)
 
 
 def config_fields(cfg: StudyConfig) -> dict[str, Any]:

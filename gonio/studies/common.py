@@ -7,12 +7,14 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import os
 from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import Any
 
 from plumbing.atomic import atomic_write_bytes
+from plumbing.errors import UserError
 from plumbing.inputs import GiB, check_input
 
 __all__ = [
@@ -53,15 +55,55 @@ def write_rows(
     atomic_write_bytes(path, buf.getvalue().encode(), overwrite=True)
 
 
-def read_rows(path: Path, convert: Callable[[str, str], Any]) -> list[dict[str, Any]]:
-    """Rows of a study CSV, each value through `convert(column, text)`."""
+def read_rows(
+    path: Path, convert: Callable[[str, str], Any], required: Collection[str] = ()
+) -> list[dict[str, Any]]:
+    """Rows of a study CSV, each value through `convert(column, text)`; a missing `required`
+    column, a short or long row, a value `convert` rejects or an infinite number is one line
+    naming the file, the line and the column."""
     check_input(path, "study CSV", GiB)
-    with open(path, newline="") as fh:
-        return [{k: convert(k, v) for k, v in r.items()} for r in csv.DictReader(fh)]
+    rows = []
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            reader = csv.DictReader(fh)
+            missing = [c for c in required if c not in (reader.fieldnames or ())]
+            if missing:
+                raise UserError(
+                    f"{path}: not this study's CSV, missing column(s) {', '.join(missing)}; "
+                    "regenerate it with the study command"
+                )
+            for r in reader:
+                if None in r or None in r.values():  # more, or fewer, fields than the header
+                    raise UserError(
+                        f"{path}: line {reader.line_num}: {len(reader.fieldnames or ())} "
+                        "columns expected; regenerate it with the study command"
+                    )
+                row = {}
+                for k, v in r.items():
+                    try:
+                        row[k] = convert(k, v)
+                    except ValueError:
+                        raise UserError(
+                            f"{path}: line {reader.line_num}, column {k!r}: {v!r} is not a "
+                            "valid value; regenerate it with the study command"
+                        ) from None
+                    if isinstance(row[k], float) and math.isinf(row[k]):
+                        raise UserError(
+                            f"{path}: line {reader.line_num}, column {k!r}: {v!r} is not "
+                            "finite; regenerate it with the study command"
+                        )
+                rows.append(row)
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise UserError(f"{path}: not a study CSV ({exc}); regenerate it") from None
+    return rows
 
 
 def read_typed_rows(
-    path: Path, text: Collection[str], ints: Collection[str] = (), bools: Collection[str] = ()
+    path: Path,
+    text: Collection[str],
+    ints: Collection[str] = (),
+    bools: Collection[str] = (),
+    required: Collection[str] = (),
 ) -> list[dict[str, Any]]:
     """Rows of a study CSV: `text` columns as str, `ints` as int, `bools` as bool ("True"),
     every other column as float."""
@@ -73,7 +115,7 @@ def read_typed_rows(
             return v in ("True", "true", "1", "yes")
         return int(v) if k in ints else float(v)
 
-    return read_rows(path, convert)
+    return read_rows(path, convert, required)
 
 
 def write_record(path: Path, record: dict[str, Any]) -> None:

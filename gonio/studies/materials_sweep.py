@@ -589,7 +589,7 @@ def _slice_rows(key: str, curves: dict[float, dict]) -> list[dict[str, Any]]:
 def read_slices(path: Path) -> dict[str, dict[float, dict]]:
     """{material: {θ_i: {"theta_o", "truth", "measured": (s, f, σ), "fits": {label: y}}}}."""
     out: dict[str, dict[float, dict]] = {}
-    for r in read_typed_rows(path, ("material", "curve")):
+    for r in read_typed_rows(path, ("material", "curve"), required=SLICE_COLUMNS):
         c = out.setdefault(r["material"], {}).setdefault(
             r["theta_i_deg"], {"theta_o": [], "truth": [], "m": [], "fits": {}}
         )
