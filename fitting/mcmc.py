@@ -17,7 +17,8 @@
   V = mean within-chain variance, R̂ = √(((n−1)/n·V + B/n)/V) (Gelman et al., BDA3 §11.4).
   Ensemble walkers are not independent, so this is a necessary, not sufficient, check;
   ``rhat_across`` gives R̂ across independent ensembles when several were run.
-* Resumable: with ``backend_path`` an ``emcee.backends.HDFBackend`` is used; a file that holds
+* Resumable: with a ``ChainFile`` the chain is saved (fitting.chain_file: emcee's HDF5
+  layout, written whole and atomically after every chunk); a file that holds
   a chain of the same (W, D) shape is continued (its random state too) up to ``max_steps``
   total iterations; otherwise it is reset. ``fingerprint`` (e.g. a hash of data, model and
   parameter names) is stored with the chain and must match for a resume, so a chain of a
@@ -39,6 +40,7 @@ from typing import Any
 import emcee
 import numpy as np
 
+from fitting.chain_file import load_chain, save_chain
 from fitting.moves import MOVES, named_moves
 from plumbing.errors import UserError
 from plumbing.progress import Progress
@@ -178,12 +180,6 @@ def _check_chain_file(path: Path) -> None:
         raise ChainFileError(_chain_error(path, exc)) from None
 
 
-def _stored_fingerprint(backend) -> str | None:
-    with backend.open() as fh:
-        value = fh[backend.name].attrs.get("gonio_fingerprint")
-    return None if value is None else str(value)
-
-
 @dataclass(frozen=True)
 class McmcOptions:
     """How an ensemble runs: `walkers` (raised to ≥ 2D + 2, even), `max_steps`, a wall-time
@@ -251,7 +247,7 @@ def run_mcmc(
             rng,
             scale,
         )
-    tau, stop_reason = _sample(sampler, start, opt, t0, progress)
+    tau, stop_reason = _sample(sampler, start, opt, t0, progress, store)
     res = _result(sampler, tau, stop_reason, t0)
     res.replaced_steps = replaced
     return res
@@ -259,47 +255,59 @@ def run_mcmc(
 
 def _open_chain(store: ChainFile | None, walkers: int, ndim: int):
     """(emcee backend or None, whether it holds this problem's chain to continue, the steps of
-    another problem's chain that were reset)."""
+    another problem's chain that were reset). The backend is in memory; fitting.chain_file
+    saves it whole and atomically at checkpoints."""
     if store is None:
         return None, False, 0
-    _check_chain_file(Path(store.path))
-    backend = emcee.backends.HDFBackend(str(store.path), name=store.name)
+    path = Path(store.path)
+    _check_chain_file(path)
     try:
-        resume = (
-            backend.initialized
-            and backend.shape == (walkers, ndim)
-            and backend.iteration > 0
-            and _stored_fingerprint(backend) == store.fingerprint
-        )
+        stored = load_chain(path, store.name)
     except (OSError, KeyError, ValueError, TypeError) as exc:
         # KeyError/ValueError: an HDF5 file whose chain group is damaged.
         raise ChainFileError(_chain_error(store.path, exc)) from None
-    replaced = 0
-    if not resume:
-        try:
-            replaced = int(backend.iteration) if backend.initialized else 0
-        except (OSError, KeyError, ValueError, TypeError):
-            replaced = 0
-        backend.reset(walkers, ndim)
-        if store.fingerprint is not None:
-            with backend.open("a") as fh:
-                fh[store.name].attrs["gonio_fingerprint"] = store.fingerprint
-    return backend, resume, replaced
+    if stored is not None:
+        backend, fingerprint = stored
+        if (
+            backend.shape == (walkers, ndim)
+            and backend.iteration > 0
+            and fingerprint == store.fingerprint
+        ):
+            return backend, True, 0
+    replaced = int(stored[0].iteration) if stored is not None else 0
+    backend = emcee.backends.Backend()
+    backend.reset(walkers, ndim)
+    return backend, False, replaced
 
 
-def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool):
-    """Run in chunks until a stop rule holds; (τ, stop reason)."""
+def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool, store=None):  # noqa: ANN001
+    """Run in chunks until a stop rule holds; (τ, stop reason). With ``store`` the chain is
+    saved after every chunk and when the run is interrupted or fails (a later fit continues
+    it); a save that fails (a full disk) leaves the previous one and stops the run."""
     walkers = sampler.nwalkers
     max_steps, chunk = opt.max_steps, opt.chunk
     bar = Progress("MCMC", max_steps, completed=sampler.iteration, enabled=progress, transient=True)
     stop_reason = "max_steps"
     tau_prev = None
     tau = np.full(sampler.ndim, np.nan)
+    saved = sampler.iteration
+
+    def checkpoint() -> None:
+        nonlocal saved
+        if store is not None and sampler.iteration > saved:
+            save_chain(Path(store.path), store.name, sampler.backend, store.fingerprint)
+            saved = sampler.iteration
+
     try:
         while sampler.iteration < max_steps:
             n = min(chunk, max_steps - sampler.iteration)
-            sampler.run_mcmc(start, n, skip_initial_state_check=True)
+            try:
+                sampler.run_mcmc(start, n, skip_initial_state_check=True)
+            except BaseException:
+                checkpoint()  # the steps taken so far are kept for the next fit
+                raise
             start = None
+            checkpoint()
             bar.update(completed=sampler.iteration)
             tau = sampler.get_autocorr_time(tol=0)
             it = sampler.iteration

@@ -89,6 +89,12 @@ def atomic_write_with(
             os.replace(tmp, path)
         else:
             os.link(tmp, path)
+    except OSError as exc:
+        if exc.filename is not None or exc.errno is None:
+            raise
+        # write(2) and fsync(2) name no file (a full disk says only "No space left on
+        # device"): the user is told which file could not be written.
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc
     finally:
         if tmp.exists():
             tmp.unlink()

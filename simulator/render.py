@@ -30,15 +30,30 @@ has columns (left, up, forward); the OpenCV frame is (−left, −up, forward): 
 
 from __future__ import annotations
 
+import re
 from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
 
+from plumbing.errors import UserError
 from simulator.bsdf_eval import eval_fr
 from simulator.materials import material_dict, model_bsdfs_alive, needs_wavefront
 from simulator.scene import Scene
 from simulator.variant import ensure_variant
+
+
+class SceneLoadError(UserError, RuntimeError):
+    """Mitsuba refused the scene a scene file describes (e.g. an unknown conductor name). One
+    line; raised while the devices are built, before a run directory exists."""
+
+
+def _mitsuba_reason(exc: RuntimeError) -> str:
+    """The last reason in Mitsuba's nested message, without its source-file locations."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    text = re.sub(r"\[[\w./]+\.(?:cpp|h|py):\d+\]\s*", "", text)
+    return ": ".join(text.rsplit(": ", 2)[-2:])  # e.g. '"data/ior/X.eta.spd": file does not exist!'
+
 
 __all__ = [
     "Renderer",
@@ -191,7 +206,13 @@ class Renderer:
         desc = self._scene_dict(sample_bsdf)
         # optimize=False: Mitsuba would otherwise merge shapes that share an identical BSDF
         # (e.g. a holder as white as the sample) into one mesh, and the sample's BSDF is needed.
-        self._scene = self._with_flags(mi.load_dict, desc, optimize=False)
+        try:
+            self._scene = self._with_flags(mi.load_dict, desc, optimize=False)
+        except RuntimeError as exc:
+            raise SceneLoadError(
+                f"scene {scene.name!r}: Mitsuba cannot load its {scene.material.type} material "
+                f"({_mitsuba_reason(exc)}); check the scene file's [material]"
+            ) from None
         self._params = mi.traverse(self._scene)
         shapes = list(self._scene.shapes())
         self._bsdf = next(s for s in shapes if s.id() == "sample").bsdf()

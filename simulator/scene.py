@@ -105,6 +105,13 @@ class MeasuredMaterial(Strict):
     type: Literal["measured"] = "measured"
     filename: str
 
+    @model_validator(mode="after")
+    def _file_exists(self) -> MeasuredMaterial:
+        # Mitsuba would say so only when the first frame is rendered.
+        if not Path(self.filename).is_file():
+            raise ValueError(f"filename {self.filename!r}: no such file (an RGL .bsdf tensor)")
+        return self
+
 
 class ModelMaterial(Strict):
     """A `fitting.models` model wrapped as a Python Mitsuba BSDF (simulator.materials).
@@ -117,6 +124,36 @@ class ModelMaterial(Strict):
     model: str = "torrance-sparrow"
     options: dict[str, str] = Field(default_factory=dict)
     parameters: dict[str, float | RGB] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _renderable(self) -> ModelMaterial:
+        """What the Python BSDF would refuse at the first render is refused when the scene is
+        read — before a run directory exists (issue 22: a value found only at render time
+        left a run that failed the same way on every resume)."""
+        from fitting import models
+
+        try:
+            model = models.get(self.model, **self.options)
+        except (KeyError, ValueError, TypeError) as exc:
+            raise ValueError(str(exc).strip("'\"").splitlines()[0]) from None
+        known = {p.name: p for p in model.parameters}
+        unknown = sorted(set(self.parameters) - set(known))
+        if unknown:
+            raise ValueError(
+                f"{', '.join(unknown)}: not a parameter of {self.model} (parameters: "
+                f"{', '.join(known)})"
+            )
+        missing = [n for n, p in known.items() if n not in self.parameters and p.default is None]
+        if missing:
+            raise ValueError(f"set parameters {', '.join(missing)} of {self.model}")
+        for name, value in self.parameters.items():
+            p = known[name]
+            values = (value,) if isinstance(value, int | float) else value
+            if not all(p.lower <= float(v) <= p.upper for v in values):
+                raise ValueError(
+                    f"{name} = {value}: outside {self.model}'s range [{p.lower:g}, {p.upper:g}]"
+                )
+        return self
 
 
 class TexturedMaterial(Strict):

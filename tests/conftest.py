@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import os
+import subprocess
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -53,3 +55,25 @@ def data_dir(group: str) -> Path:
     if not files:
         pytest.fail(f"no data group {group!r} in data/SHA256SUMS or fitting.data_paths.FETCHED")
     return data_file(files[0]).parent
+
+
+@pytest.fixture
+def tmpfs():
+    """`mount(path, size)`: a real tmpfs over `path`; returns a function that grows it to
+    8 MiB (the operator frees space), or None where mounting is not permitted. Unmounted at
+    teardown."""
+    mounted: list[Path] = []
+
+    def mount(path: Path, size: str) -> Callable[[], None] | None:
+        cmd = ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)]
+        try:
+            if os.geteuid() != 0 or subprocess.run(cmd, capture_output=True).returncode != 0:
+                return None
+        except OSError:  # no mount binary
+            return None
+        mounted.append(path)
+        return lambda: subprocess.run(["mount", "-o", "remount,size=8m", str(path)], check=True)
+
+    yield mount
+    for path in mounted:
+        subprocess.run(["umount", "-l", str(path)], capture_output=True)

@@ -31,7 +31,6 @@ import signal
 import subprocess
 import time
 import warnings
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -107,28 +106,6 @@ def test_camera_that_returns_no_frame_stops_safely_and_resumes(tmp_path: Path) -
         assert_safe(s.world, s.config)
         out = s.resume_and_check()  # the camera answers again: the missed pose is re-shot
         assert out.captured == len(EXPECTED_KEYS) - n
-
-
-@pytest.fixture
-def tmpfs():
-    """`mount(path, size)`: a real tmpfs over `path`; returns a function that grows it to
-    8 MiB (the operator frees space), or None where mounting is not permitted. Unmounted at
-    teardown."""
-    mounted: list[Path] = []
-
-    def mount(path: Path, size: str) -> Callable[[], None] | None:
-        cmd = ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)]
-        try:
-            if os.geteuid() != 0 or subprocess.run(cmd, capture_output=True).returncode != 0:
-                return None
-        except OSError:  # no mount binary
-            return None
-        mounted.append(path)
-        return lambda: subprocess.run(["mount", "-o", "remount,size=8m", str(path)], check=True)
-
-    yield mount
-    for path in mounted:
-        subprocess.run(["umount", "-l", str(path)], capture_output=True)
 
 
 # A frame is an EXR of ~21 kB (64×64 RGB half + header, page-rounded to 24 kB on tmpfs), so

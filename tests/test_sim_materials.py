@@ -22,6 +22,7 @@ from fitting import models
 from plumbing.config import ConfigError
 from simulator.render import (
     Renderer,
+    SceneLoadError,
     board_renderer,
     camera_intrinsics,
     reference_target_scene,
@@ -168,6 +169,48 @@ def test_model_bsdf_missing_parameter_is_an_error():
         Renderer(_flat_scene(ModelMaterial(model="torrance-sparrow", parameters={"kd": 0.3})))
 
 
+@pytest.mark.parametrize(
+    ("material", "message"),
+    [
+        (
+            'type = "model"\nmodel = "torrance-sparrow"\noptions = {distribution = "nope"}',
+            "distribution='nope'; choose one of",
+        ),
+        (
+            'type = "model"\nmodel = "lambert"\nparameters = {kd = 0.5, zz = 1.0}',
+            "zz: not a parameter of lambert",
+        ),
+        (
+            'type = "model"\nmodel = "lambert"\nparameters = {kd = [0.5, 1.5, 0.5]}',
+            "outside lambert's range [0, 1]",
+        ),
+        ('type = "model"\nmodel = "nomodel"', "unknown model 'nomodel'"),
+        ('type = "measured"\nfilename = "nothere.bsdf"', "no such file"),
+    ],
+)
+def test_scene_values_mitsuba_would_refuse_at_render_are_refused_on_load(
+    tmp_path, material, message
+):
+    """Issue 22: found only at the first render, these left a run directory that failed the
+    same way on every resume; now load_scene refuses them in one line naming file and key."""
+    path = tmp_path / "scene.toml"
+    path.write_text(f"[material]\n{material}\n")
+    with pytest.raises(ConfigError) as info:
+        load_scene(path)
+    line = str(info.value)
+    assert "\n" not in line and line.startswith(f"{path}: material.") and message in line
+
+
+def test_a_material_mitsuba_refuses_is_one_line_before_any_render():
+    """An unknown conductor preset is found only by Mitsuba (its list of spectra ships inside
+    the library): the renderer, built with the devices before a run directory exists, says so
+    in one line instead of an internal error."""
+    with pytest.raises(SceneLoadError) as info:
+        Renderer(_flat_scene({"type": "roughconductor", "conductor": "Unobtainium"}))
+    line = str(info.value)
+    assert "\n" not in line and "Unobtainium" in line and "roughconductor" in line
+
+
 def test_builtin_scene_renders_while_a_model_bsdf_is_alive():
     # drjit's symbolic virtual calls trace every live BSDF instance, so a live Python BSDF used
     # to break *other* scenes; the renderer must switch them to wavefront mode.
@@ -233,7 +276,9 @@ def test_charuco_board_on_sample_plane_detects_where_the_pinhole_projects_it():
 
 
 def test_reference_target_is_lambertian_with_its_albedo():
-    scene = reference_target_scene(_flat_scene(ModelMaterial(model="lambert", parameters={})), 0.9)
+    scene = reference_target_scene(
+        _flat_scene(ModelMaterial(model="lambert", parameters={"kd": 0.5})), 0.9
+    )
     r = Renderer(scene)
     wi, wo = _sph(70.0, 0.0)[None], _sph(10.0, 180.0)[None]
     np.testing.assert_allclose(r.truth_bsdf(wi, wo), 0.9 / np.pi, rtol=1e-6)

@@ -91,6 +91,7 @@ def fit(
     )
     chans = [c.strip() for c in channels.split(",")] if channels else None
     dest = out_dir or samples.parent
+    _check_spaces(table, cands, (fixed, prior_cfg, chans), priors)
     _show_flag_counts(table, chans, drop_flagged)
 
     from fitting.fit import FitOptions
@@ -138,6 +139,35 @@ def _run_fits(table, base, cands, flags, dest: Path) -> None:  # noqa: ANN001
     _show_comparison(ranked, dest)
     # A comparison ranks poor models below good ones: only the best one's fails decide the exit.
     verdict_exit(results[ranked[0].label].verdicts, accept_poor_fit, ranked[0].label)
+
+
+def _check_spaces(table, cands, space_args, priors_path) -> None:  # noqa: ANN001
+    """Build each candidate's parameter space before anything is printed or written, so a
+    priors file, --fix or --shared that does not suit the model is the command's only line."""
+    from fitting import models
+    from fitting.priors import ParameterSpace, PriorsError
+    from gonio.errors import UserError
+
+    fixed, prior_cfg, chans = space_args
+    present = table.channels
+    missing = [c for c in chans or () if c not in present]
+    if missing:
+        raise UserError(
+            f"--channels {', '.join(missing)}: not in the samples (present: {', '.join(present)})"
+        )
+    for c in cands:
+        try:
+            ParameterSpace.build(
+                models.get(c.model, **dict(c.options)),
+                chans or present,
+                shared=c.shared,
+                fix=fixed,
+                priors=prior_cfg,
+            )
+        except (PriorsError, ValueError) as exc:
+            line = str(exc).splitlines()[0]
+            where = f"{priors_path}: " if priors_path is not None and "prior" in line else ""
+            raise UserError(f"{where}{line}") from None
 
 
 def _show_flag_counts(table, chans, drop_flagged: bool) -> None:  # noqa: ANN001
