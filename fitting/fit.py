@@ -27,7 +27,7 @@ import numpy as np
 
 from fitting import models
 from fitting.budget import add_systematic, read_budget
-from fitting.likelihood import DARK_SNR, Likelihood
+from fitting.likelihood import Likelihood, dark_snr_of
 from fitting.lsq import fit_least_squares
 from fitting.mcmc import (
     ChainFile,
@@ -102,6 +102,8 @@ def _fingerprint(lik: Likelihood, model_name, options, kind, nu, censor) -> str:
     for d in lik.data:
         for a in (d.wi, d.wo, d.f, d.sigma, d.kind):
             h.update(np.ascontiguousarray(a).tobytes())
+        if d.weight is not None:  # binned censored rows (fitting.binning)
+            h.update(np.ascontiguousarray(d.weight).tobytes())
     return h.hexdigest()
 
 
@@ -147,6 +149,9 @@ class FitOptions:
     # A second stop rule: after emcee's own criterion, run on until every R̂ and ESS meet this
     # target (fitting.mcmc.extend_chain), within `steps` in all.
     converge: ConvergenceTarget | None = None
+    # The file a binned table (fitting.binning) was streamed from: the fit then bounds what the
+    # binning moved (a second pass over the rows, fitting.binning.bias_bound).
+    binned_source: str | os.PathLike | None = None
 
     def replace(self, **changes) -> FitOptions:
         return dataclasses.replace(self, **changes)
@@ -190,11 +195,7 @@ def _setup(table: SampleTable, opt: FitOptions):
 
 def _dark_snr(table: SampleTable) -> float:
     """The DARK rule's f/σ limit the calibration used (its metadata), else its default."""
-    try:
-        value = json.loads(table.metadata.get("gonio.calibration", "{}")).get("min_snr")
-    except (TypeError, ValueError, AttributeError):
-        value = None
-    return float(value) if isinstance(value, int | float) and value > 0 else DARK_SNR
+    return dark_snr_of(table.metadata)
 
 
 def fit_samples(
@@ -212,6 +213,15 @@ def fit_samples(
     lsq = fit_least_squares(
         lik, weighting=opt.weighting, loss=opt.loss, n_starts=opt.n_starts, seed=opt.seed
     )
+    eps_corrected = None
+    if opt.binned_source is not None and "gonio.binned" in table.metadata:
+        # Binned samples: remove the model's curvature over each bin from its mean (one more
+        # streamed pass at the least-squares optimum), then fit the corrected bins.
+        table, eps_corrected = _correct_binning(table, lik, lsq.x, opt.binned_source)
+        _model, channels, space, lik = _setup(table, opt)
+        lsq = fit_least_squares(
+            lik, weighting=opt.weighting, loss=opt.loss, starts=lsq.x[None, :], seed=opt.seed
+        )
     # The fractional discrepancy scales with the least-squares prediction, frozen (see
     # fitting.likelihood: a θ-dependent scale rewards overshooting, a measured one biases).
     lik.set_discrepancy_reference(lsq.x)
@@ -257,6 +267,10 @@ def fit_samples(
         summarise(space, draws, x_map), _model, channels, read_budget(table.metadata)
     )
     diagnostics["budget"] = budget_notes
+    if "gonio.binned" in table.metadata:  # the samples were binned (fitting.binning)
+        diagnostics["binning"] = _binning_diagnostics(
+            table, lik, x_map, opt.binned_source, eps_corrected
+        )
     result = FitResult(
         model=opt.model,
         options=dict(opt.model_options),
@@ -351,6 +365,75 @@ def _laplace_draws(lik, lsq, x_lsq, opt: FitOptions, rng) -> np.ndarray:
         cov *= max(1.0, float(np.sum(r**2)) / max(lik.n_exact - space.ndim, 1))
     draws = rng.multivariate_normal(x_lsq, cov, size=4000, method="eigh")
     return np.clip(draws, lo, hi)
+
+
+def model_values(lik: Likelihood, x: np.ndarray, table: SampleTable) -> np.ndarray:
+    """The model at ``x`` (sampled space) for every row of ``table``; NaN for rows of channels
+    the fit does not hold."""
+    natural = lik.space.natural_dict(np.atleast_2d(x))
+    out = np.full(len(table), np.nan)
+    wi, wo = table.wi, table.wo
+    for d in lik.data:
+        rows = table.channel == d.channel
+        if rows.any():
+            params = lik.space.channel_params(natural, d.channel)
+            with np.errstate(all="ignore"):
+                fm = lik.model.evaluate(params, wi[rows], wo[rows])
+            out[rows] = np.broadcast_to(np.asarray(fm, dtype=np.float64), (1, int(rows.sum())))[0]
+    return out
+
+
+def _correct_binning(table: SampleTable, lik: Likelihood, x, source):  # noqa: ANN001, ANN202
+    """(the binned table with each exact bin's mean corrected by the model's curvature over the
+    bin at ``x``, f̄_b − ε_b, and ε_b/σ̄_b) — fitting.binning.binning_bias. The correction is
+    exact for the model at ``x``; near ``x`` (within the posterior) it changes to second order."""
+    from fitting.binning import binning_bias
+
+    eps = binning_bias(source, table, lambda t: model_values(lik, x, t))
+    corrected = table.select(np.ones(len(table), bool))
+    corrected.f = table.f - eps * table.sigma
+    corrected.metadata["gonio.binned_corrected"] = "curvature at the least-squares optimum"
+    return corrected, eps
+
+
+def _binning_diagnostics(table, lik, x_map, source, eps_corrected) -> dict:  # noqa: ANN001
+    """What binning did and — with the file it came from — what it still moves after the
+    curvature correction: the bias left, ε(x_map) − ε(x_lsq), as the bound ‖·‖ on the shift of
+    any estimate and the linearised shift of each parameter, Δx = (JᵀJ)⁻¹Jᵀ(ε/σ̄) with J the
+    whitened model Jacobian over the exact bins (finite differences), in posterior sds; and
+    the same for the uncorrected bins (``uncorrected_*``, what the correction removed)
+    (tests/test_binning.py checks both against refits)."""
+    from fitting.binning import binning_bias
+
+    info = {k: v for k, v in json.loads(table.metadata["gonio.binned"]).items() if k != "channels"}
+    if source is None:
+        return info
+    eps = binning_bias(source, table, lambda t: model_values(lik, x_map, t))
+    left = eps if eps_corrected is None else eps - eps_corrected
+    rows = eps != 0
+    sub = table.select(rows)
+    base = model_values(lik, x_map, sub)
+    jac = np.zeros((len(sub), x_map.size))
+    for j in range(x_map.size):
+        x = np.array(x_map, dtype=np.float64)
+        x[j] += 1e-6 * max(abs(float(x[j])), 1.0)
+        jac[:, j] = (model_values(lik, x, sub) - base) / (x[j] - x_map[j]) / sub.sigma
+    informed = np.any(jac != 0, axis=0)  # the discrepancy s does not enter f̂
+    cov = np.linalg.pinv(jac[:, informed].T @ jac[:, informed])
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    names = [n for n, ok in zip(lik.space.names, informed, strict=True) if ok]
+
+    def shifts(e: np.ndarray) -> dict[str, float]:
+        moved = (cov @ (jac[:, informed].T @ e[rows])) / np.where(sd > 0, sd, np.inf)
+        return {n: float(v) for n, v in zip(names, moved, strict=True)}
+
+    info["corrected"] = eps_corrected is not None
+    info["bias_bound_sd"] = float(np.linalg.norm(left))
+    info["shift_sd"] = shifts(left)
+    info["max_shift_sd"] = max((abs(v) for v in info["shift_sd"].values()), default=0.0)
+    info["uncorrected_bound_sd"] = float(np.linalg.norm(eps))
+    info["uncorrected_shift_sd"] = shifts(eps)
+    return info
 
 
 def _goodness(lik, x_map) -> dict:

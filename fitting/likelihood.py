@@ -38,6 +38,7 @@ finite for any used sample.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -49,12 +50,24 @@ from fitting.kernels import gauss_discrepancy_sum
 from fitting.priors import ParameterSpace
 from fitting.samples import Flags, SampleTable
 
-__all__ = ["ChannelData", "Likelihood", "LIKELIHOOD_KINDS", "DARK_SNR"]
+__all__ = ["ChannelData", "Likelihood", "LIKELIHOOD_KINDS", "DARK_SNR", "dark_snr_of"]
 
 #: The calibration's default DARK rule (calibration.reduce.ReduceOptions.min_snr): f/σ < 3.
 DARK_SNR = 3.0
 
 LIKELIHOOD_KINDS = ("gaussian", "student-t")
+
+
+def dark_snr_of(metadata: dict[str, str]) -> float:
+    """The DARK rule's f/σ limit a calibration used (samples metadata ``gonio.calibration``,
+    key min_snr), else the calibration's default."""
+    try:
+        value = json.loads(metadata.get("gonio.calibration", "{}")).get("min_snr")
+    except (TypeError, ValueError, AttributeError):
+        value = None
+    return float(value) if isinstance(value, int | float) and value > 0 else DARK_SNR
+
+
 _LN_2PI = float(np.log(2 * np.pi))
 
 
@@ -70,6 +83,16 @@ class ChannelData:
     theta_i: np.ndarray
     theta_o: np.ndarray
     kind: np.ndarray  # (N,) int8: 0 exact, 1 saturated (censored above), 2 dark (censored below)
+    #: Rows a censored sample stands for (a bin of fitting.binning; 1 for exact rows, whose
+    #: bin is already one sample of the combined σ); None: every row is one observation.
+    weight: np.ndarray | None = None
+
+    def censored_sum(self, terms: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """Σ of (W, n) ``terms`` of the ``mask`` rows (n = mask.sum()), each weighted by its
+        row count."""
+        if self.weight is None:
+            return terms.sum(axis=1)
+        return terms @ self.weight[mask]
 
     @property
     def exact(self) -> np.ndarray:
@@ -128,9 +151,15 @@ class Likelihood:
         f_all = np.asarray(table.f, dtype=np.float64)
         with np.errstate(invalid="ignore"):
             f_all = np.where(dark, np.maximum(f_all, float(dark_snr) * table.sigma), f_all)
+        counts = table.extra.get("n_rows")
         for ch in channels:
             sel = usable & (table.channel == ch)
             kind_arr = np.where(sat[sel], 1, np.where(dark[sel], 2, 0)).astype(np.int8)
+            weight = (
+                None
+                if counts is None
+                else np.where(kind_arr == 0, 1.0, np.asarray(counts[sel], dtype=np.float64))
+            )
             self.data.append(
                 ChannelData(
                     ch,
@@ -141,6 +170,7 @@ class Likelihood:
                     np.asarray(table.theta_i[sel], dtype=np.float64),
                     np.asarray(table.theta_o[sel], dtype=np.float64),
                     kind_arr,
+                    weight,
                 )
             )
         self.n = int(sum(d.f.size for d in self.data))
@@ -211,7 +241,11 @@ class Likelihood:
                 sat = d.kind == 1
                 dark = d.kind == 2
                 # Saturated: P(Y > f) = Φ((f̂ − f)/√v); dark: P(Y < f) = Φ((f − f̂)/√v).
-                ll = ll + log_ndtr(-z[:, sat]).sum(axis=1) + log_ndtr(z[:, dark]).sum(axis=1)
+                ll = (
+                    ll
+                    + d.censored_sum(log_ndtr(-z[:, sat]), sat)
+                    + d.censored_sum(log_ndtr(z[:, dark]), dark)
+                )
             else:
                 ll = self._exact(r, var).sum(axis=1)
         return np.where(bad, -np.inf, ll)
@@ -262,6 +296,8 @@ class Likelihood:
                 sat, dark = d.kind == 1, d.kind == 2
                 ll[:, sat] = log_ndtr(-z[:, sat])
                 ll[:, dark] = log_ndtr(z[:, dark])
+                if d.weight is not None:
+                    ll *= d.weight  # exact rows have weight 1
             out.append(np.where(np.isfinite(fm), ll, -np.inf))
         ll = np.concatenate(out, axis=1)
         return np.where(np.isnan(ll), -np.inf, ll)

@@ -13,6 +13,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 import pyarrow as pa
@@ -213,6 +214,37 @@ def _channel_column(arrow, path) -> np.ndarray:
     return np.asarray(column.to_numpy(zero_copy_only=False), dtype=object).astype(str)
 
 
+def open_samples_file(path: Path) -> pq.ParquetFile:
+    """The Parquet file of a samples table, opened (its footer read) but no rows; a missing
+    file, a directory, a FIFO or device (plumbing.inputs) or another format is one line."""
+    if not path.exists():
+        raise SamplesError(f"{path}: no such file")
+    if path.is_dir():
+        raise SamplesError(f"{path}: is a directory, expected a samples .parquet file")
+    check_input(path, "samples table")  # a FIFO or device would block or never end
+    try:
+        return pq.ParquetFile(path)
+    except Exception as exc:  # pyarrow raises several types for a non-Parquet file
+        _not_parquet(path, exc)
+
+
+def _not_parquet(path: Path, exc: Exception) -> NoReturn:
+    from fitting.formats import sniff_format
+
+    fmt = sniff_format(path)
+    if fmt is not None:  # a format gonio can import: say how
+        raise SamplesError(
+            f"{path}: looks like {_FORMAT_NAMES[fmt]} file, not a Parquet samples table; "
+            f"convert it with `gonio import {fmt} {path} --out SAMPLES.parquet` (samples of a "
+            "run: `gonio calibrate RUN`)"
+        ) from None
+    raise SamplesError(
+        f"{path}: not a Parquet samples table ({type(exc).__name__}: damaged or another "
+        "format); re-create it with `gonio calibrate RUN`, convert it with `gonio import`, "
+        "or write it with pyarrow"
+    ) from None
+
+
 def read_samples(path: str | os.PathLike, *, merge_duplicates: bool = False) -> SampleTable:
     """Read and validate a samples table. Raises SamplesError with a one-line reason.
 
@@ -220,34 +252,31 @@ def read_samples(path: str | os.PathLike, *, merge_duplicates: bool = False) -> 
     below-horizon rows, σ ≤ 0, unflagged f < 0, duplicated rows — the latter merged instead
     when ``merge_duplicates``)."""
     path = Path(path)
-    if not path.exists():
-        raise SamplesError(f"{path}: no such file")
-    if path.is_dir():
-        raise SamplesError(f"{path}: is a directory, expected a samples .parquet file")
-    check_input(path, "samples table")  # a FIFO or device would block or never end
+    parquet = open_samples_file(path)
     try:
-        arrow = pq.read_table(path)
-    except Exception as exc:  # pyarrow raises several types for a non-Parquet file
-        from fitting.formats import sniff_format
+        arrow = parquet.read()
+    except Exception as exc:  # a damaged column chunk behind a readable footer
+        _not_parquet(path, exc)
+    table = table_from_arrow(arrow, path, merge_duplicates=merge_duplicates)
+    table.source_sha256 = sha256_file(path)
+    return table
 
-        fmt = sniff_format(path)
-        if fmt is not None:  # a format gonio can import: say how
-            raise SamplesError(
-                f"{path}: looks like {_FORMAT_NAMES[fmt]} file, not a Parquet samples table; "
-                f"convert it with `gonio import {fmt} {path} --out SAMPLES.parquet` (samples of a "
-                "run: `gonio calibrate RUN`)"
-            ) from None
-        raise SamplesError(
-            f"{path}: not a Parquet samples table ({type(exc).__name__}: damaged or another "
-            "format); re-create it with `gonio calibrate RUN`, convert it with `gonio import`, "
-            "or write it with pyarrow"
-        ) from None
-    missing = [c for c in REQUIRED_COLUMNS if c not in arrow.column_names]
+
+def check_columns(names: list[str], path: Path) -> None:
+    """Refuse a table without every required column (one line)."""
+    missing = [c for c in REQUIRED_COLUMNS if c not in names]
     if missing:
         raise SamplesError(
             f"{path}: not a samples table, missing column(s) {', '.join(missing)} "
             f"(required: {', '.join(REQUIRED_COLUMNS)})"
         )
+
+
+def table_from_arrow(arrow: pa.Table, path: Path, *, merge_duplicates: bool = False) -> SampleTable:
+    """The validated SampleTable of an Arrow table read from ``path`` (whole, or one batch of a
+    streamed read, fitting.binning): columns, schema version, finiteness, flags, channel names
+    and the guards of fitting.formats.guards. Raises SamplesError."""
+    check_columns(arrow.column_names, path)
     raw_meta = arrow.schema.metadata or {}
     meta = {k.decode(): v.decode() for k, v in raw_meta.items() if not k.startswith(b"ARROW")}
     version = meta.get("gonio.schema_version")
@@ -304,6 +333,4 @@ def read_samples(path: str | os.PathLike, *, merge_duplicates: bool = False) -> 
     )
     from fitting.formats.guards import check_samples  # here: guards import this module
 
-    table = check_samples(table, str(path), merge_duplicates_rows=merge_duplicates)
-    table.source_sha256 = sha256_file(path)
-    return table
+    return check_samples(table, str(path), merge_duplicates_rows=merge_duplicates)

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from acquisition.store import RunStore
-from fitting.samples import read_samples
+from fitting.binning import read_bounded
 from gonio import report_maps as maps
 from gonio import report_plots as plots
 from gonio import report_sections as sections
@@ -321,7 +321,7 @@ def _write_report(run_dir: Path, store: RunStore, compute_times_s: dict[str, flo
     samples_path = run_dir / "samples.parquet"
     if not samples_path.exists():
         raise UserError(f"{samples_path}: no samples yet; run `gonio calibrate {run_dir}` first")
-    samples = read_samples(samples_path)
+    samples = read_bounded(samples_path)  # binned beyond 10⁶ rows (fitting.binning)
     fit_paths = sorted(run_dir.glob("fit-*.json"))
     # read_fit checks every key the page uses, so a damaged or foreign fit file is one line
     # naming it, not a KeyError halfway through the page.
@@ -406,7 +406,7 @@ def write_fit_report(
     from gonio.errors import UserError
 
     samples_path, fit_path = Path(samples_path), Path(fit_path)
-    samples = read_samples(samples_path)
+    samples = read_bounded(samples_path)  # binned beyond 10⁶ rows (fitting.binning)
     fit = read_fit(fit_path).to_dict()
     check_samples_match(fit_path, fit, samples_path, samples.source_sha256)
     missing = [c for c in fit["channels"] if c not in samples.channels]

@@ -74,18 +74,25 @@ def fit(
     merge_duplicates: Annotated[
         bool, typer.Option("--merge-duplicates", help="Merge repeated rows (combined σ).")
     ] = False,
+    bin_deg: Annotated[
+        float | None,
+        typer.Option(
+            "--bin",
+            help="Bin samples into cells of DEG (0: every row; default: 0.1 for tables over "
+            "1,000,000 rows, streamed in bounded memory; a verdict bounds what it moved).",
+        ),
+    ] = None,
 ) -> None:
     """Fit a model to SAMPLES: writes fit-NAME.json, fit-NAME.h5 and material-NAME.xml
     (Mitsuba 3); with --model all or --compare-shared also compare.json (ranked by PSIS-LOO).
     The samples contract (columns, units, flags, metadata) is in docs/formats.md."""
-    from fitting.samples import read_samples
     from gonio.errors import UserError
 
     if censor and drop_flagged:
         raise UserError("--censor and --drop-flagged contradict each other: give one")
     if censor:
         out.print("note: --censor is the default now (it does nothing); --drop-flagged excludes")
-    table = read_samples(samples, merge_duplicates=merge_duplicates)
+    table = _read_for_fit(samples, bin_deg, merge_duplicates)
     model, fixed, prior_cfg, cands = _checked_fit_args(
         model, fix, priors, (option, shared, compare_shared), (likelihood, walkers, steps)
     )
@@ -108,8 +115,28 @@ def fit(
         seed=seed,
         likelihood=likelihood,
         censor=not drop_flagged,
+        binned_source=samples if "gonio.binned" in table.metadata else None,
     )
     _run_fits(table, base, cands, (compare_shared, accept_poor_fit), Path(dest))
+
+
+def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):  # noqa: ANN202
+    """The samples table, binned (streamed) when asked or when it is large; one line says so."""
+    from fitting.binning import AUTO_BIN_DEG, AUTO_BIN_ROWS, BinOptions, read_binned, rows_in
+    from fitting.samples import read_samples
+    from gonio.errors import UserError
+
+    if bin_deg is not None and not (bin_deg == 0 or bin_deg > 0):
+        raise UserError(f"--bin {bin_deg}: give a cell width in degrees, or 0 for every row")
+    if bin_deg is None:
+        bin_deg = AUTO_BIN_DEG if rows_in(samples) > AUTO_BIN_ROWS else 0.0
+    if bin_deg == 0:
+        return read_samples(samples, merge_duplicates=merge_duplicates)
+    table, report = read_binned(
+        samples, BinOptions(width_deg=bin_deg), merge_duplicates=merge_duplicates
+    )
+    out.print(report.line(), markup=False)
+    return table
 
 
 def _run_fits(table, base, cands, flags, dest: Path) -> None:  # noqa: ANN001
