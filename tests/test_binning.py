@@ -10,6 +10,10 @@ not its own judge.
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -230,3 +234,31 @@ def test_a_bad_row_in_a_later_batch_is_refused_like_a_whole_read(tmp_path, camer
     with pytest.raises(Exception, match="NaN or inf in f") as info:
         read_binned(path, BinOptions(width_deg=WIDTH_DEG, batch_rows=1000))
     assert "\n" not in str(info.value)
+
+
+def test_gonio_fit_bins_on_request_and_refuses_a_bad_width(tmp_path, camera_like):
+    """The command line: --bin DEG bins (one line says how), the fit JSON records it with its
+    verdict; a negative or too small width is one line, exit 2, nothing written."""
+    _, _, table = camera_like
+    path = write_samples(tmp_path / "s.parquet", table)
+
+    def fit(*extra: str) -> subprocess.CompletedProcess:
+        args = ["fit", str(path), "--model", "lambert", "--no-mcmc", "--accept-poor-fit"]
+        return subprocess.run(
+            [sys.executable, "-m", "gonio.cli", *args, *extra],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+
+    for width in ("-1", "0.001"):
+        bad = fit("--bin", width, "--out", str(tmp_path / "bad"))
+        assert bad.returncode == 2 and bad.stderr.startswith("error: "), bad.stderr
+        assert len(bad.stderr.strip().splitlines()) == 1 and not (tmp_path / "bad").exists()
+    good = fit("--bin", "0.2", "--out", str(tmp_path / "fit"))
+    assert good.returncode == 0, good.stderr
+    assert f"binned {len(table):,} rows into" in good.stdout.replace("\n", " ")
+    doc = json.loads((tmp_path / "fit" / "fit-lambert.json").read_text())
+    info = doc["diagnostics"]["binning"]
+    assert info["rows"] == len(table) and info["corrected"] and doc["n_samples"] == info["bins"]
+    assert [v["name"] for v in doc["verdicts"]][-1] == "binning"
