@@ -289,10 +289,16 @@ def table_from_arrow(arrow: pa.Table, path: Path, *, merge_duplicates: bool = Fa
         raise SamplesError(f"{path}: the samples table is empty")
 
     def col(name: str, dtype: type) -> np.ndarray:
+        column = arrow.column(name)
+        fix = "write it as numbers (pyarrow, or `gonio import csv` for a text table)"
+        # Text that happens to parse ("0.4") was converted silently before: a table whose
+        # numbers are strings was written by something that did not mean them as numbers.
+        if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
+            raise SamplesError(f"{path}: column {name!r} is not {dtype.__name__} but text; {fix}")
         try:
-            return np.asarray(arrow.column(name).to_numpy(zero_copy_only=False), dtype=dtype)
+            return np.asarray(column.to_numpy(zero_copy_only=False), dtype=dtype)
         except (TypeError, ValueError, pa.ArrowInvalid):
-            raise SamplesError(f"{path}: column {name!r} is not {dtype.__name__}") from None
+            raise SamplesError(f"{path}: column {name!r} is not {dtype.__name__}; {fix}") from None
 
     f = col("f", np.float64)
     sigma = col("sigma", np.float64)

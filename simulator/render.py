@@ -48,6 +48,29 @@ class SceneLoadError(UserError, RuntimeError):
     line; raised while the devices are built, before a run directory exists."""
 
 
+def check_material(scene: Scene) -> None:
+    """Load the scene's sample material in Mitsuba alone, before any device or run exists, so
+    what only Mitsuba knows (its conductor presets) is one line before a plan is announced.
+    Python-model and textured materials are checked by their scene types and skipped here."""
+    import mitsuba as mi
+
+    kinds = {scene.material.type}
+    for key in ("first", "second"):
+        part = getattr(scene.material, key, None)
+        if part is not None:
+            kinds.add(part.type)
+    if kinds & {"model", "textured"}:
+        return
+    ensure_variant()
+    try:
+        mi.load_dict(material_dict(scene.material))
+    except RuntimeError as exc:
+        raise SceneLoadError(
+            f"scene {scene.name!r}: Mitsuba cannot load its {scene.material.type} material "
+            f"({_mitsuba_reason(exc)}); check the scene file's [material]"
+        ) from None
+
+
 def _mitsuba_reason(exc: RuntimeError) -> str:
     """The last reason in Mitsuba's nested message, without its source-file locations."""
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__

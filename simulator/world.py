@@ -40,7 +40,7 @@ from simulator.camera import SimCamera, WorldView
 from simulator.dxl import EmulatedBus, register_bus
 from simulator.faults import CameraFaults, FaultyCamera
 from simulator.light import EmulatedLight, register_light
-from simulator.render import Renderer
+from simulator.render import Renderer, check_material
 from simulator.scene import DiffuseMaterial, Scene, world_scene
 
 __all__ = ["SimWorld", "EmulatedDevices", "SimHands", "url_name", "TICKS_PER_REV"]
@@ -170,6 +170,8 @@ class SimWorld:
                 )
             register_clock("sim", self.clock)
         if rig.camera.backend == "sim":
+            if renderer is None:
+                check_material(self.scene)  # before a plan is announced or a run exists
             register_camera_backend("sim", self._make_camera)
 
     # -- the emulators (in-process worlds only) -------------------------------------------------

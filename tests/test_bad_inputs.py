@@ -112,6 +112,8 @@ def test_bad_input(case: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) 
     missing = [w for w in case["expect"] if w.lower() not in line]
     assert not missing, f"{errors[0]!r} lacks {missing}"
     assert _diff(before, _snapshot(tmp_path)) == []
+    # The cases with a command in them (rig_python_code, runtoml_trigger_command) touch PWNED.
+    assert not (work / "PWNED").exists() and not (REPO / "PWNED").exists()
 
     tb = _in_process_debug(args, work, monkeypatch)
     assert tb.startswith("Traceback (most recent call last)")
@@ -139,7 +141,7 @@ def test_corpus_is_complete_and_small() -> None:
     assert len(listed) == len(set(listed))
     items = {
         f"{group}/{p.name}"
-        for group in ("configs", "run_dirs", "samples")
+        for group in ("configs", "run_dirs", "samples", "studies")
         for p in (CORPUS / group).iterdir()
     }
     assert items == set(listed)

@@ -240,3 +240,30 @@ def test_refinement_covers_the_true_specular_peak() -> None:
         assert dist <= step * math.sqrt(2) / 2 + 1e-9
     # The refined plan is a valid plan for the rig (every pose reachable).
     assert len(build_plan(RIG, plan).poses) == len(refined)
+
+
+def test_a_plan_beyond_the_pose_cap_is_one_line_before_expansion() -> None:
+    """Issue 22 "bounded cost": a hemisphere plan at 0.5° steps asks for ~10¹¹ poses; before
+    the cap it exhausted the machine (24 GB) with no output. It is refused from its own numbers,
+    without expanding anything, and the bound is a bound for every shipped plan."""
+    from acquisition.config import PlanConfig, load_plan, load_rig
+    from acquisition.plans import MAX_PLAN_POSES, PlanTooLarge, expand_grid, pose_count_bound
+
+    huge = PlanConfig.model_validate(
+        {
+            "name": "huge",
+            "type": "hemisphere",
+            "theta_step_deg": 0.5,
+            "phi_step_deg": 0.5,
+            "exposures_s": [0.002],
+        }
+    )
+    with pytest.raises(PlanTooLarge, match="asks for up to .* poses, more than the 200,000"):
+        expand_grid(huge)  # returning at all shows nothing was expanded
+    assert pose_count_bound(huge) > MAX_PLAN_POSES
+    rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
+    for path in sorted((REPO / "configs" / "plans").glob("*.toml")):
+        cfg = load_plan(path)
+        if cfg.type == "adaptive":
+            continue  # its phases are plans of the other types
+        assert len(expand_grid(cfg, rig)) <= pose_count_bound(cfg), path.name

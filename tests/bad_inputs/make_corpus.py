@@ -10,6 +10,9 @@ command reads which file, and the words its one-line error must contain — are 
 
 from __future__ import annotations
 
+import csv
+import io
+import json
 import re
 import shutil
 import sqlite3
@@ -133,7 +136,30 @@ CONFIGS: dict[str, str] = {
     "scene_unknown_key.toml": _edit(SCENE_OK, "seed = ", "sede = 1\nseed = "),
     "scene_wrong_type.toml": SCENE_OK + '\n[camera]\nf_number = "four"\n',
     "scene_angle_out_of_range.toml": SCENE_OK + "\n[camera]\nfov_deg = 400.0\n",
+    # Scene values only Mitsuba would have refused, at the first render (before: a run left
+    # failing the same way on every resume); refused before a run directory exists.
+    "scene_model_bad_option.toml": (
+        '[material]\ntype = "model"\nmodel = "torrance-sparrow"\n'
+        'options = {distribution = "nope"}\nparameters = {kd = 0.3, ks = 0.2, m = 0.2}\n'
+    ),
+    "scene_unknown_conductor.toml": (
+        '[material]\ntype = "roughconductor"\nconductor = "Unobtainium"\n'
+    ),
+    # A plan whose steps ask for ~10¹¹ poses (before: 24 GB and the OOM killer, no output).
+    "plan_too_many_poses.toml": (
+        'name = "corpus-huge"\ntype = "hemisphere"\ntheta_step_deg = 0.5\n'
+        "phi_step_deg = 0.5\nexposures_s = [0.002]\n"
+    ),
+    # priors (gonio fit --priors): bounds wider than the model's range [0, 1]
+    "priors_outside_range.toml": "[parameters.kd_R]\nlower = -1\nupper = 5\n",
 }
+# Rich markup in a value, which the error line must show as written (an unknown URL scheme:
+# no device is opened).
+CONFIGS["rig_markup_in_url.toml"] = _edit(
+    CONFIGS["rig_absent_port.toml"],
+    "/dev/ttyUSB-gonio-corpus-absent",
+    "bogus://[bold]corpus[/bold]",
+)
 
 
 def write_configs() -> None:
@@ -141,6 +167,10 @@ def write_configs() -> None:
     d.mkdir(exist_ok=True)
     for name, text in CONFIGS.items():
         (d / name).write_text(text)
+    # A directory where a config file is expected; it holds a good rig, as git keeps no empty
+    # directories.
+    (d / "rig_dir.toml").mkdir(exist_ok=True)
+    (d / "rig_dir.toml" / "rig.toml").write_text(RIG_OK)
 
 
 # -- runs ------------------------------------------------------------------------------------
@@ -183,6 +213,10 @@ def _normalise(run: Path) -> None:
     doc["gonio"]["started_at"] = FIXED_TIME
     doc["gonio"]["version"] = "0+corpus"
     doc.get("rig", {}).pop("scene", None)  # an absolute path of the machine that made it
+    doc.get("rig", {}).get("calibration", {}).pop("intrinsics", None)  # the same
+    if "intrinsics_source" in doc.get("camera", {}):
+        source = doc["camera"]["intrinsics_source"]
+        doc["camera"]["intrinsics_source"] = source.replace(f"{REPO}/", "")
     (run / "run.toml").write_text(tomli_w.dumps(doc))
     log = run / "log.jsonl"
     if log.exists():
@@ -277,6 +311,10 @@ def write_runs(work: Path) -> None:
     _sql(r, "UPDATE captures SET frame_path = '../../etc/passwd'")
     r = variant("frame_path_absolute", exr)
     _sql(r, "UPDATE captures SET frame_path = '/etc/passwd'")
+    r = variant("manifest_exposure_zero", exr)
+    _sql(r, "UPDATE captures SET exposure_s = 0")
+    r = variant("frame_sha256_differs", exr)  # a frame changed or swapped since capture
+    _sql(r, "UPDATE captures SET sha256 = '00' || substr(sha256, 3)")
 
     # An empty run: a manifest and a frozen config, zero captures (a run that never started).
     r = runs / "empty"
@@ -285,6 +323,17 @@ def write_runs(work: Path) -> None:
     RunStore.create(r, (exr / "run.toml").read_text()).close()
     _normalise(r)
     (r / "frames").rmdir()  # git keeps no empty directories; a run without frames/ is the same
+    # A run whose frozen rig runs a command: resuming it with another rig file must refuse.
+    r = variant("runtoml_trigger_command", r)
+    text = (r / "run.toml").read_text()
+    (r / "run.toml").write_text(
+        _edit(
+            text,
+            '[rig.camera]\nbackend = "sim"\n',
+            '[rig.camera]\nbackend = "folder"\nfolder = "incoming"\n'
+            'trigger_command = ["sh", "-c", "touch PWNED"]\n',
+        )
+    )
 
     # Runs with samples and a fit, for `gonio report` and a resumed `gonio fit`.
     fitted = work / "fitted"
@@ -303,6 +352,11 @@ def write_runs(work: Path) -> None:
     (r / "fit-lambert.h5").unlink()
     text = (r / "fit-lambert.json").read_text()
     (r / "fit-lambert.json").write_text(_edit(text, '"schema_version": 1', '"schema_version": 99'))
+    r = variant("fit_json_nan", fitted)
+    (r / "fit-lambert.h5").unlink()
+    doc = json.loads((r / "fit-lambert.json").read_text())
+    doc["parameters"]["kd_R"]["map"] = float("nan")  # json writes the bare token NaN
+    (r / "fit-lambert.json").write_text(json.dumps(doc, indent=2))
     r = variant("chain_h5_truncated", fitted)
     (r / "fit-lambert.json").unlink()
     # The first 20 kB: a valid HDF5 signature and superblock, then nothing.
@@ -317,9 +371,6 @@ def write_runs(work: Path) -> None:
 
 def _strip_parquet_meta(path: Path) -> bytes:
     """The samples table with the machine-specific provenance fields fixed."""
-    import io
-    import json
-
     t = pq.read_table(path)
     meta = dict(t.schema.metadata)
     cal = json.loads(meta[b"gonio.calibration"])
@@ -365,6 +416,26 @@ def write_samples(work: Path) -> None:
     cols = _table(40, 8)
     del cols["sigma"]
     pq.write_table(pa.table(cols), d / "missing_column.parquet")
+    cols = _table(40, 9)
+    cols["theta_i"] = [f"{v} rad" for v in cols["theta_i"]]
+    pq.write_table(pa.table(cols), d / "angle_as_text.parquet")
+    # A good table: the bad input is the command's --fix.
+    shutil.copy(good, d / "fix_outside_range.parquet")
+
+
+# -- study CSVs ------------------------------------------------------------------------------
+def write_studies() -> None:
+    d = HERE / "studies"
+    if d.exists():
+        shutil.rmtree(d)
+    d.mkdir()
+    # The first rows of the accuracy-vs-time study, one cell made infinite.
+    with open(REPO / "docs" / "accuracy-vs-time.csv", newline="") as fh:
+        rows = list(csv.reader(fh))[:4]
+    rows[2][rows[0].index("lab_time_s")] = "inf"
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerows(rows)
+    (d / "results_inf.csv").write_text(buf.getvalue())
 
 
 def main() -> int:
@@ -373,6 +444,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         write_runs(Path(tmp))
         write_samples(Path(tmp))
+    write_studies()
     big = [p for p in HERE.rglob("*") if p.is_file() and p.stat().st_size > MAX_BYTES]
     for p in big:
         print(f"too big: {p} ({p.stat().st_size} bytes)", file=sys.stderr)
