@@ -11,6 +11,15 @@ from rich.table import Table
 
 from gonio.cli._app import _kv, app, out
 
+_BinOption = Annotated[
+    float | None,
+    typer.Option(
+        "--bin",
+        help="Bin samples into cells of DEG (0: every row; default: 0.1 for tables over "
+        "1,000,000 rows, streamed in bounded memory; a verdict bounds what it moved).",
+    ),
+]
+
 
 @app.command()
 def fit(
@@ -74,14 +83,7 @@ def fit(
     merge_duplicates: Annotated[
         bool, typer.Option("--merge-duplicates", help="Merge repeated rows (combined σ).")
     ] = False,
-    bin_deg: Annotated[
-        float | None,
-        typer.Option(
-            "--bin",
-            help="Bin samples into cells of DEG (0: every row; default: 0.1 for tables over "
-            "1,000,000 rows, streamed in bounded memory; a verdict bounds what it moved).",
-        ),
-    ] = None,
+    bin_deg: _BinOption = None,
 ) -> None:
     """Fit a model to SAMPLES: writes fit-NAME.json, fit-NAME.h5 and material-NAME.xml
     (Mitsuba 3); with --model all or --compare-shared also compare.json (ranked by PSIS-LOO).
@@ -97,10 +99,8 @@ def fit(
         model, fix, priors, (option, shared, compare_shared), (likelihood, walkers, steps)
     )
     chans = [c.strip() for c in channels.split(",")] if channels else None
-    dest = out_dir or samples.parent
     _check_spaces(table, cands, (fixed, prior_cfg, chans), priors)
     _show_flag_counts(table, chans, drop_flagged)
-
     from fitting.fit import FitOptions
 
     base = FitOptions(
@@ -117,7 +117,9 @@ def fit(
         censor=not drop_flagged,
         binned_source=samples if "gonio.binned" in table.metadata else None,
     )
-    _run_fits(table, base, cands, (compare_shared, accept_poor_fit), Path(dest))
+    _run_fits(
+        table, base, cands, (compare_shared, accept_poor_fit), Path(out_dir or samples.parent)
+    )
 
 
 def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):  # noqa: ANN202
@@ -172,6 +174,7 @@ def _check_spaces(table, cands, space_args, priors_path) -> None:  # noqa: ANN00
     """Build each candidate's parameter space before anything is printed or written, so a
     priors file, --fix or --shared that does not suit the model is the command's only line."""
     from fitting import models
+    from fitting.compare import restrict
     from fitting.priors import ParameterSpace, PriorsError
     from gonio.errors import UserError
 
@@ -183,14 +186,12 @@ def _check_spaces(table, cands, space_args, priors_path) -> None:  # noqa: ANN00
             f"--channels {', '.join(missing)}: not in the samples (present: {', '.join(present)})"
         )
     for c in cands:
+        model = models.get(c.model, **dict(c.options))
+        # A comparison reduces one --fix / priors file to the names each model knows, as
+        # fitting.compare.run_comparison does; a single fit takes them as given.
+        fx, pr = restrict(model, fixed, prior_cfg) if len(cands) > 1 else (fixed, prior_cfg)
         try:
-            ParameterSpace.build(
-                models.get(c.model, **dict(c.options)),
-                chans or present,
-                shared=c.shared,
-                fix=fixed,
-                priors=prior_cfg,
-            )
+            ParameterSpace.build(model, chans or present, shared=c.shared, fix=fx, priors=pr)
         except (PriorsError, ValueError) as exc:
             line = str(exc).splitlines()[0]
             where = f"{priors_path}: " if priors_path is not None and "prior" in line else ""
