@@ -149,8 +149,8 @@ class FitOptions:
     # A second stop rule: after emcee's own criterion, run on until every R̂ and ESS meet this
     # target (fitting.mcmc.extend_chain), within `steps` in all.
     converge: ConvergenceTarget | None = None
-    # The file a binned table (fitting.binning) was streamed from: the fit then bounds what the
-    # binning moved (a second pass over the rows, fitting.binning.bias_bound).
+    # The file a binned table (fitting.binning) was streamed from: the fit then corrects the
+    # bins for the model's curvature and states what binning still moves (fitting.binning).
     binned_source: str | os.PathLike | None = None
 
     def replace(self, **changes) -> FitOptions:
@@ -188,14 +188,9 @@ def _setup(table: SampleTable, opt: FitOptions):
         nu=opt.nu,
         censor=opt.censor,
         channels=channels,
-        dark_snr=_dark_snr(table),
+        dark_snr=dark_snr_of(table.metadata),
     )
     return model, channels, space, lik
-
-
-def _dark_snr(table: SampleTable) -> float:
-    """The DARK rule's f/σ limit the calibration used (its metadata), else its default."""
-    return dark_snr_of(table.metadata)
 
 
 def fit_samples(

@@ -272,10 +272,13 @@ def check_columns(names: list[str], path: Path) -> None:
         )
 
 
-def table_from_arrow(arrow: pa.Table, path: Path, *, merge_duplicates: bool = False) -> SampleTable:
+def table_from_arrow(
+    arrow: pa.Table, path: Path, *, merge_duplicates: bool = False, guards: bool = True
+) -> SampleTable:
     """The validated SampleTable of an Arrow table read from ``path`` (whole, or one batch of a
     streamed read, fitting.binning): columns, schema version, finiteness, flags, channel names
-    and the guards of fitting.formats.guards. Raises SamplesError."""
+    and — unless ``guards`` is False, for a rereading of rows already checked — the guards of
+    fitting.formats.guards. Raises SamplesError."""
     check_columns(arrow.column_names, path)
     raw_meta = arrow.schema.metadata or {}
     meta = {k.decode(): v.decode() for k, v in raw_meta.items() if not k.startswith(b"ARROW")}
@@ -339,4 +342,6 @@ def table_from_arrow(arrow: pa.Table, path: Path, *, merge_duplicates: bool = Fa
     )
     from fitting.formats.guards import check_samples  # here: guards import this module
 
+    if not guards:
+        return table
     return check_samples(table, str(path), merge_duplicates_rows=merge_duplicates)

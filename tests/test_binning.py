@@ -262,3 +262,19 @@ def test_gonio_fit_bins_on_request_and_refuses_a_bad_width(tmp_path, camera_like
     info = doc["diagnostics"]["binning"]
     assert info["rows"] == len(table) and info["corrected"] and doc["n_samples"] == info["bins"]
     assert [v["name"] for v in doc["verdicts"]][-1] == "binning"
+
+
+def test_a_binned_fit_of_merged_duplicates_rereads_the_file_without_refusing_it(tmp_path):
+    """The fit's second and third passes reread rows the first pass validated: a file read with
+    --merge-duplicates (repeated rows, no capture_id) is not refused there as a duplicate, and a
+    file changed between the passes is refused in one line."""
+    table = _repeated_table()
+    table.extra = {}  # the repeats are now duplicated rows, accepted only when merged
+    path = write_samples(tmp_path / "dup.parquet", table)
+    binned, _ = read_binned(path, BinOptions(width_deg=0.05), merge_duplicates=True)
+    opts = FitOptions(model="lambert", mcmc=False, n_starts=1, binned_source=path)
+    fit = fit_samples(binned, opts)
+    assert fit.diagnostics["binning"]["corrected"]
+    write_samples(path, table.select(np.arange(len(table)) > 0))  # another file, same path
+    with pytest.raises(Exception, match="changed while it was being fitted"):
+        fit_samples(binned, opts)
