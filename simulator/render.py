@@ -65,10 +65,14 @@ def check_material(scene: Scene) -> None:
     try:
         mi.load_dict(material_dict(scene.material))
     except RuntimeError as exc:
-        raise SceneLoadError(
-            f"scene {scene.name!r}: Mitsuba cannot load its {scene.material.type} material "
-            f"({_mitsuba_reason(exc)}); check the scene file's [material]"
-        ) from None
+        raise _refused(scene, exc) from None
+
+
+def _refused(scene: Scene, exc: RuntimeError) -> SceneLoadError:
+    return SceneLoadError(
+        f"scene {scene.name!r}: Mitsuba cannot load its {scene.material.type} material "
+        f"({_mitsuba_reason(exc)}); check the scene file's [material]"
+    )
 
 
 def _mitsuba_reason(exc: RuntimeError) -> str:
@@ -232,10 +236,7 @@ class Renderer:
         try:
             self._scene = self._with_flags(mi.load_dict, desc, optimize=False)
         except RuntimeError as exc:
-            raise SceneLoadError(
-                f"scene {scene.name!r}: Mitsuba cannot load its {scene.material.type} material "
-                f"({_mitsuba_reason(exc)}); check the scene file's [material]"
-            ) from None
+            raise _refused(scene, exc) from None
         self._params = mi.traverse(self._scene)
         shapes = list(self._scene.shapes())
         self._bsdf = next(s for s in shapes if s.id() == "sample").bsdf()

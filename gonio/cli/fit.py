@@ -99,7 +99,7 @@ def fit(
         model, fix, priors, (option, shared, compare_shared), (likelihood, walkers, steps)
     )
     chans = [c.strip() for c in channels.split(",")] if channels else None
-    _check_spaces(table, cands, (fixed, prior_cfg, chans), priors)
+    _check_spaces(table, cands, (fixed, prior_cfg, chans, compare_shared), priors)
     _show_flag_counts(table, chans, drop_flagged)
     from fitting.fit import FitOptions
 
@@ -128,7 +128,7 @@ def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):
     from fitting.samples import read_samples
     from gonio.errors import UserError
 
-    if bin_deg is not None and not (bin_deg == 0 or bin_deg > 0):
+    if bin_deg is not None and not bin_deg >= 0:  # negative or NaN
         raise UserError(f"--bin {bin_deg}: give a cell width in degrees, or 0 for every row")
     if bin_deg is None:
         bin_deg = AUTO_BIN_DEG if rows_in(samples) > AUTO_BIN_ROWS else 0.0
@@ -178,7 +178,8 @@ def _check_spaces(table, cands, space_args, priors_path) -> None:  # noqa: ANN00
     from fitting.priors import ParameterSpace, PriorsError
     from gonio.errors import UserError
 
-    fixed, prior_cfg, chans = space_args
+    fixed, prior_cfg, chans, compare_shared = space_args
+    comparison = len(cands) > 1 or compare_shared  # the run_comparison path of _run_fits
     present = table.channels
     missing = [c for c in chans or () if c not in present]
     if missing:
@@ -189,7 +190,7 @@ def _check_spaces(table, cands, space_args, priors_path) -> None:  # noqa: ANN00
         model = models.get(c.model, **dict(c.options))
         # A comparison reduces one --fix / priors file to the names each model knows, as
         # fitting.compare.run_comparison does; a single fit takes them as given.
-        fx, pr = restrict(model, fixed, prior_cfg) if len(cands) > 1 else (fixed, prior_cfg)
+        fx, pr = restrict(model, fixed, prior_cfg) if comparison else (fixed, prior_cfg)
         try:
             ParameterSpace.build(model, chans or present, shared=c.shared, fix=fx, priors=pr)
         except (PriorsError, ValueError) as exc:
