@@ -19,6 +19,14 @@ when every criterion of fitting.verdicts.mcmc_verdict holds. ``verdicts`` (fitti
 status "ok" | "warning" | "fail", a one-line reason, a one-line advice ("" when ok). Files
 without these keys (older fits) are read as before.
 
+``diagnostics.mismatch`` (fits with the discrepancy term, issue 18 item 3; fitting.mismatch):
+``applied`` (whether the intervals were widened for model mismatch, else ``reason``),
+``variance_ratio`` (sandwich / model-based variance along its eigen-directions, clipped at 1),
+``sd_factor`` {NAME: widened sd / sampler's sd}, ``transform`` {names, center, matrix} (the
+linear map applied to the chain's draws, in the sampled space), and ``regions``: the model
+error per (θ_h, θ_d) region — ``label``, ``regions`` (0…8), ``n``, ``median``, ``p2.5``,
+``p16``, ``p84``, ``p97.5``, ``quantiles`` (at 0, 2.5, … 100 %).
+
 Values are natural units (not the log used for sampling). Non-finite numbers are written as
 null (JSON has no NaN).
 """

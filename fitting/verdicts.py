@@ -29,6 +29,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from scipy.stats import chi2 as _chi2
 
+from fitting.mismatch import REGION_MIN_SAMPLES, region_index, region_label
 from fitting.priors import DISCREPANCY, ParameterSpec
 
 __all__ = [
@@ -114,13 +115,7 @@ ALBEDO_FAIL = 1.01
 #: Incidence angles of the energy check, 0…89° (rad): the albedo of microfacet and Phong
 #: lobes is largest at grazing incidence, so the grid goes close to it.
 ALBEDO_THETA = np.radians([0.0, 20.0, 40.0, 60.0, 70.0, 80.0, 85.0, 89.0])
-#: Regions of the residual check: θ_h bands (rad) — specular core, lobe flank, off-specular —
-#: times θ_d bands — near-normal, mid, grazing (where Fresnel and shadowing matter).
-REGION_THETA_H = np.radians([0.0, 10.0, 30.0, 90.0])
-REGION_THETA_D = np.radians([0.0, 30.0, 60.0, 90.0])
-#: A region is judged with at least this many samples: its χ²/n then has sd √(2/n) ≤ 0.32,
-#: small enough to tell a model error of tens of percent of σ from noise.
-REGION_MIN_SAMPLES = 20
+# The regions of (θ_h, θ_d) are fitting.mismatch's (one definition of "region").
 
 
 def make_verdict(name: str, status: str, reason: str, advice: str = "") -> dict:
@@ -243,22 +238,13 @@ def chi2_verdict(goodness: Mapping[str, float]) -> dict:
 
 def _region_table(wi, wo, r) -> list[tuple[str, int, float, float]]:
     """(label, n, χ²/n, mean residual) per (θ_h, θ_d) region with enough samples."""
-    from fitting.rusinkiewicz import to_half_diff
-
-    th, td, _ = to_half_diff(wi, wo)
-    ih = np.clip(np.digitize(th, REGION_THETA_H) - 1, 0, REGION_THETA_H.size - 2)
-    idd = np.clip(np.digitize(td, REGION_THETA_D) - 1, 0, REGION_THETA_D.size - 2)
+    reg = region_index(wi, wo)
     rows = []
-    for a in range(REGION_THETA_H.size - 1):
-        for b in range(REGION_THETA_D.size - 1):
-            sel = (ih == a) & (idd == b)
-            n = int(sel.sum())
-            if n < REGION_MIN_SAMPLES:
-                continue
-            h0, h1 = np.degrees(REGION_THETA_H[a : a + 2])
-            d0, d1 = np.degrees(REGION_THETA_D[b : b + 2])
-            label = f"θh {h0:.0f}–{h1:.0f}°, θd {d0:.0f}–{d1:.0f}°"
-            rows.append((label, n, float(np.mean(r[sel] ** 2)), float(np.mean(r[sel]))))
+    for k in range(9):
+        sel = reg == k
+        n = int(sel.sum())
+        if n >= REGION_MIN_SAMPLES:
+            rows.append((region_label(k), n, float(np.mean(r[sel] ** 2)), float(np.mean(r[sel]))))
     return rows
 
 
@@ -318,8 +304,31 @@ def _width_ratio(spec: ParameterSpec, p: Mapping[str, float]) -> float:
     return (_internal(spec, p["p84"]) - _internal(spec, p["p16"])) / (0.68 * (hi - lo))
 
 
-def discrepancy_verdict(parameters: Mapping[str, Mapping], specs: Sequence[ParameterSpec]) -> dict:
-    """The fitted model error s (fraction of f) against its prior."""
+def _mismatch_words(mismatch: Mapping | None) -> str:
+    """'; largest in θh 30–90°, θd 30–60° (8 %); intervals widened up to ×2 (m)' — what the
+    regional model error and the sandwich (fitting.mismatch) add to the verdict, or ''."""
+    if not mismatch:
+        return ""
+    from fitting.mismatch import widening_words
+
+    words = ""
+    regions = [r for r in mismatch.get("regions", []) if r.get("median") is not None]
+    if len(regions) > 1:
+        worst = max(regions, key=lambda r: r["median"])
+        words += f"; largest in {worst['label']} ({100 * worst['median']:.3g} %)"
+    if mismatch.get("applied") or mismatch.get("reason") not in (None, "--no-widen"):
+        words += "; " + widening_words(mismatch)
+    return words
+
+
+def discrepancy_verdict(
+    parameters: Mapping[str, Mapping],
+    specs: Sequence[ParameterSpec],
+    mismatch: Mapping | None = None,
+) -> dict:
+    """The fitted model error s (fraction of f) against its prior; with ``mismatch`` (the fit's
+    diagnostics from fitting.mismatch) also the region where it is largest and how much the
+    intervals were widened for it."""
     spec = next((s for s in specs if s.name == DISCREPANCY[0]), None)
     if spec is None:
         return make_verdict("discrepancy", "ok", "no discrepancy term fitted (σ taken as given)")
@@ -327,6 +336,7 @@ def discrepancy_verdict(parameters: Mapping[str, Mapping], specs: Sequence[Param
     s, hi = float(p["median"]), float(p["p97.5"])
     sides = _piles(spec, p)
     reason = f"model error s = {100 * s:.3g} % of f (95 % ≤ {100 * hi:.3g} %)"
+    reason += _mismatch_words(mismatch)
     advice = "try another model (--model all ranks them)"
     # Spread over the whole prior first: then both bounds are "reached" and neither tells.
     if _width_ratio(spec, p) >= IDENTIFIED_RATIO:
@@ -509,7 +519,7 @@ def judge(fit, lik, mcmc) -> tuple[list[dict], dict]:
         conv,
         chi2_verdict(fit.goodness),
         regions_verdict(*_exact_residuals(lik, x_map)),
-        discrepancy_verdict(fit.parameters, specs),
+        discrepancy_verdict(fit.parameters, specs, fit.diagnostics.get("mismatch")),
         bounds_verdict(fit.parameters, specs),
         energy_verdict(lik.model, per_channel),
         identified_verdict(fit.parameters, specs),

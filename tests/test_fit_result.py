@@ -33,7 +33,8 @@ GOOD = {"chi2", "dof", "chi2_red", "aic", "bic", "n"}
 # Optional since issue 18 (readers accept files without them): the verdicts and what
 # "converged" rests on.
 OPTIONAL_TOP = {"verdicts"}
-OPTIONAL_DIAG = {"converged_because", "failed_criteria", "budget"}  # budget: fitting.budget notes
+# budget: fitting.budget notes; mismatch: fitting.mismatch (widening, model error per region)
+OPTIONAL_DIAG = {"converged_because", "failed_criteria", "budget", "mismatch"}
 VERDICT = {"name", "status", "reason", "advice"}
 
 
