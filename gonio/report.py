@@ -238,6 +238,7 @@ def _fit_section(
         f"{html.escape(json.dumps(fit.get('options', {})))}</h2>"
     )
     parts.append(sections.parameter_table(fit, truth))
+    parts += sections.mismatch_parts(fit)
     parts += _diagnostics_parts(fit)
     parts += _hemisphere_parts(samples, fit)
     parts += sections.coverage_parts(samples, fit)

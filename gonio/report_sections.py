@@ -174,6 +174,47 @@ def parameter_table(fit: dict, truth: dict[str, float]) -> str:
     return f"<table class='params'><tr>{header}</tr>{''.join(rows)}</table>{note}"
 
 
+def mismatch_parts(fit: dict) -> list[str]:
+    """How the model's mismatch shaped the intervals (fitting.mismatch): whether they were
+    widened and by how much, what they cover, and the model error per (θ_h, θ_d) region."""
+    info = fit.get("diagnostics", {}).get("mismatch")
+    if not info:
+        return []
+    from fitting.mismatch import widening_words
+
+    parts = ["<h3>Model mismatch</h3>", f"<p>{html.escape(widening_words(info))}.</p>"]
+    factors = info.get("sd_factor") or {}
+    if info.get("applied") and factors:
+        parts.append(
+            "<p class='note'>Widening per parameter (sd after / sd of the sampler's draws): "
+            + html.escape(", ".join(f"{k} ×{v:.3g}" for k, v in factors.items()))
+            + ". Where the model cannot describe the material, no parameter is 'true': the "
+            "intervals are for the best approximation on the measured directions — what the "
+            "same fit would give with every direction of that domain measured without noise — "
+            "and widened to the sandwich estimate of their spread (HC3; Ribatet et al. 2012) "
+            "where the residuals show the posterior is too narrow for it.</p>"
+        )
+    regions = info.get("regions") or []
+    if regions:
+        rows = [
+            [r["label"], r["n"], f"{100 * r['median']:.3g} %"]
+            + [f"{100 * r['p2.5']:.3g}–{100 * r['p97.5']:.3g} %"]
+            for r in regions
+        ]
+        head = "<tr><th>region</th><th>samples</th><th>model error s</th><th>95 %</th></tr>"
+        body = "".join(
+            "<tr>" + "".join(f"<td class='num'>{_cell(c)}</td>" for c in row) + "</tr>"
+            for row in rows
+        )
+        parts.append(
+            f"<table class='params'>{head}{body}</table><p class='note'>Model error per region "
+            "of the half and difference angles (θ_h, θ_d): the RMS fraction of f the model "
+            "misses there, at the fitted parameters (uniform prior on [0, 1]). A prediction's "
+            "95 % band uses its region's value.</p>"
+        )
+    return parts
+
+
 def _is_warning(note: str) -> bool:
     """A budget note that says an interval leaves something out (shown in red)."""
     return any(w in note for w in ("statistical only", "not in any interval", "not propagated"))

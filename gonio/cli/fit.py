@@ -20,6 +20,15 @@ _BinOption = Annotated[
     ),
 ]
 
+_NoWidenOption = Annotated[
+    bool,
+    typer.Option(
+        "--no-widen",
+        help="Keep the sampler's intervals: do not widen them for model mismatch (they then "
+        "hold only if the model describes the material).",
+    ),
+]
+
 
 @app.command()
 def fit(
@@ -84,6 +93,7 @@ def fit(
         bool, typer.Option("--merge-duplicates", help="Merge repeated rows (combined σ).")
     ] = False,
     bin_deg: _BinOption = None,
+    no_widen: _NoWidenOption = False,
 ) -> None:
     """Fit a model to SAMPLES: writes fit-NAME.json, fit-NAME.h5 and material-NAME.xml
     (Mitsuba 3); with --model all or --compare-shared also compare.json (ranked by PSIS-LOO).
@@ -116,6 +126,7 @@ def fit(
         likelihood=likelihood,
         censor=not drop_flagged,
         binned_source=samples if "gonio.binned" in table.metadata else None,
+        widen_for_mismatch=not no_widen,
     )
     _run_fits(
         table, base, cands, (compare_shared, accept_poor_fit), Path(out_dir or samples.parent)
