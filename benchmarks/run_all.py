@@ -4,40 +4,44 @@ Speed is measured here, never asserted in tests. Each benchmark prints its own t
 figures quoted in docs/performance.md come from this command on a 2-core machine. Every
 bench_*.py is picked up; `make bench BENCH=bench_soak` runs one (the soak, issue 9, takes a few
 minutes; its figures are in docs/reliability.md).
+
+Each benchmark runs in a process of its own. A process's peak resident set (VmHWM) never goes
+down, so in one shared process every memory figure after the first large benchmark reported
+that benchmark's peak instead of its own: the soak printed 741 MiB peak RSS in one `make bench`
+(issue 23, item 6) after bench_big_fit and bench_render had run before it, against 175–197 MiB
+alone. A fresh interpreter per benchmark also keeps one benchmark's numba caches, thread pools
+and imported libraries from timing another's.
 """
 
 from __future__ import annotations
 
-import importlib.util
+import subprocess
 import sys
 import time
-import traceback
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))  # the benchmarks' shared helpers (benchmarks/_common.py)
 
 
 def main(argv: list[str]) -> int:
     names = argv or sorted(p.stem for p in HERE.glob("bench_*.py"))
-    failed = 0
+    failed = []
     for name in names:
         path = HERE / f"{name}.py"
+        if not path.is_file():
+            print(f"no benchmark named {name} in {HERE}", file=sys.stderr)
+            failed.append(name)
+            continue
         print(f"\n=== {name} ===", flush=True)
-        spec = importlib.util.spec_from_file_location(name, path)
-        module = importlib.util.module_from_spec(spec)
         t0 = time.perf_counter()
-        saved = sys.argv
-        sys.argv = [str(path)]  # each benchmark parses its own (default) options
-        try:
-            spec.loader.exec_module(module)
-            module.main()
-        except (Exception, SystemExit):
-            traceback.print_exc()
-            failed += 1
-        finally:
-            sys.argv = saved
-        print(f"({name}: {time.perf_counter() - t0:.1f} s wall)", flush=True)
+        # each benchmark parses its own (default) options; the child finds benchmarks/_common.py
+        # because a script's own directory is first on its sys.path
+        rc = subprocess.call([sys.executable, str(path)], cwd=HERE.parent)
+        if rc != 0:
+            failed.append(name)
+        print(f"({name}: {time.perf_counter() - t0:.1f} s wall, exit {rc})", flush=True)
+    if failed:
+        print(f"\nfailed: {', '.join(failed)}", file=sys.stderr)
     return 1 if failed else 0
 
 
