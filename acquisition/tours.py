@@ -18,10 +18,14 @@ from acquisition.motion import axis_speed_rad_s, move_time_s
 
 __all__ = ["order_poses", "DENSE_MAX_POSES"]
 
-# Above this many poses the dense cost matrix is not built. At 1500 its construction peaks at
-# about 1500² × 8 B × 6 ≈ 110 MB (one array per axis, their stack, and the result), which is
-# the most a plan may cost before its first capture on a small lab PC.
+# Above this many poses the dense cost matrix is not built. It is built in blocks of rows
+# (`_dense_cost`), so at 1500 poses the ordering holds the matrix and its padded copy, 2 × 1500² ×
+# 8 B ≈ 36 MB, plus one block's temporaries: the most a plan may cost before its first capture
+# on a small lab PC. (Evaluated in one piece, move_time_s's temporaries over n² × n_axes made a
+# 1250-pose plan peak at 350 MiB: the soak's 741 MiB "peak RSS" of issue 23 item 6, in part.)
 DENSE_MAX_POSES = 1500
+# Elements (legs × axes) per block of `_dense_cost`: about 6 temporaries of 8 B each, ≈ 50 MB.
+BLOCK_ELEMENTS = 1 << 20
 # 2-opt window (poses) for large plans: each window's cost matrix is WINDOW² doubles (~0.5 MB)
 # and consecutive windows overlap by half, so an improving exchange near a window's edge is
 # seen whole by the next one.
@@ -42,7 +46,7 @@ def order_poses(axes: dict[str, AxisConfig], vectors: np.ndarray, start: np.ndar
     if n > DENSE_MAX_POSES:
         tour = _nearest_neighbour_kdtree(axes, vectors, start)
         return _windowed_two_opt(axes, vectors, start, tour).tolist()
-    cost = move_time_s(axes, vectors[:, None, :], vectors[None, :, :])
+    cost = _dense_cost(axes, vectors)
     start_cost = move_time_s(axes, start[None, :], vectors)
     # Nearest neighbour.
     tour = [int(np.argmin(start_cost))]
@@ -65,6 +69,17 @@ def order_poses(axes: dict[str, AxisConfig], vectors: np.ndarray, start: np.ndar
     while _two_opt(c_full, path):
         pass
     return path[1:-1].tolist()
+
+
+def _dense_cost(axes: dict[str, AxisConfig], vectors: np.ndarray) -> np.ndarray:
+    """The n × n move-time matrix, a block of rows at a time (the same arithmetic as one call, so
+    the same values and the same tour; memory: the matrix plus one block's temporaries)."""
+    n, n_axes = vectors.shape
+    rows = max(1, BLOCK_ELEMENTS // (n * n_axes))
+    cost = np.empty((n, n))
+    for lo in range(0, n, rows):
+        cost[lo : lo + rows] = move_time_s(axes, vectors[lo : lo + rows, None, :], vectors[None])
+    return cost
 
 
 def _two_opt(c: np.ndarray, p: np.ndarray) -> bool:
