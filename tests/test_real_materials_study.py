@@ -157,6 +157,29 @@ def test_verdict_lambert_wording_follows_the_rule() -> None:
     assert "Not converged" in nc and "phong" in nc.split("Not converged")[1]
 
 
+def test_verdict_never_names_an_unconverged_chain_best() -> None:
+    # phong has the least error but its chain did not converge: blinn-phong is the best
+    # converged fit, and phong's lower error is reported as not ranked.
+    rows = _rows({"lambert": 1.2, "phong": 0.4, "blinn-phong": 0.5}, "phong", {"phong": False})
+    text = doc.verdict(rows)
+    assert "**blinn-phong** fits best" in text and "**phong** fits best" not in text
+    assert "did not converge are not ranked: phong 40.0%" in text
+    # With no chain converged the ranking is given, and said not to be trusted.
+    none = doc.verdict(
+        _rows({"lambert": 1.2, "phong": 0.4}, "phong", dict.fromkeys(("lambert", "phong"), False))
+    )
+    assert none.startswith("No chain converged") and "**phong** fits best" in none
+    # The added-models table compares converged bests too.
+    rows = [dict(r, material="red-paint") for r in rows] + [
+        dict(r, material="red-paint", model=m, converged=c, rel_rms=e)
+        for r, (m, c, e) in zip(
+            rows[:2], [("two-lobe", False, 0.1), ("heavy-tail", True, 0.3)], strict=True
+        )
+    ]
+    table = "\n".join(doc.new_models_section(rows, {}))
+    assert "| red-paint | blinn-phong | 50.0% | heavy-tail | 30.0% | -40.0% | yes |" in table
+
+
 def test_verdict_flags_bound_and_overshoot_from_the_numbers() -> None:
     rows = _rows({"lambert": 1.2, "phong": 0.4, "ts-ggx-smith": 9.0}, "phong")
     for r in rows:

@@ -60,13 +60,26 @@ def verdict(rows: list[dict[str, Any]], label: str | None = None) -> str:
     ok = [r for r in rows if math.isfinite(float(r["rel_rms"]))]
     if not ok:
         return f"{name}: no fit could be scored."
-    by_err = sorted(ok, key=lambda r: float(r["rel_rms"]))
+    # Only a converged chain is ranked: an unconverged one's estimate is not the posterior's
+    # (a fit with R̂ 14.5 was once named best); where none converged, say so and rank them all.
+    conv = [r for r in ok if _truthy(r["converged"])]
+    by_err = sorted(conv or ok, key=lambda r: float(r["rel_rms"]))
     best, worst = by_err[0], by_err[-1]
     b = float(best["rel_rms"])
     words = [
         f"**{name}**: **{best['model']}** fits best, held-out error {_pct(b)} of f·cos θ_i "
         f"(Ngan L2 {float(best['ngan_l2']):.3g} sr⁻¹)"
     ]
+    if not conv:
+        words.insert(0, "No chain converged, so this ranking is not to be trusted.")
+    lower = [r for r in ok if r not in by_err and float(r["rel_rms"]) < b]
+    if conv and lower:
+        words.insert(
+            1,
+            "(Lower held-out errors from chains that did not converge are not ranked: "
+            + ", ".join(f"{r['model']} {_pct(float(r['rel_rms']))}" for r in lower)
+            + ".)",
+        )
     if len(by_err) > 1:
         second = by_err[1]
         words[-1] += f", then {second['model']} ({_pct(float(second['rel_rms']))})"
@@ -143,6 +156,10 @@ def verdict(rows: list[dict[str, Any]], label: str | None = None) -> str:
 
 def _truthy(v: Any) -> bool:
     return v in (True, 1, "1", "True", "true", "yes")
+
+
+def _converged_or_all(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    return [r for r in rows if _truthy(r["converged"])] or rows
 
 
 def _pose_note(rows: list[dict[str, Any]]) -> str:
@@ -365,8 +382,9 @@ def new_models_section(rows: list[dict[str, Any]], mats: dict) -> list[str]:
         add = [r for r in mrows if r["model"] in NEW_MODELS]
         if not (old and add):
             continue
-        bo = min(old, key=lambda r: r["rel_rms"])
-        bn = min(add, key=lambda r: r["rel_rms"])
+        # converged chains only, as in verdict(), unless no chain of that group converged
+        bo = min(_converged_or_all(old), key=lambda r: r["rel_rms"])
+        bn = min(_converged_or_all(add), key=lambda r: r["rel_rms"])
         change = bn["rel_rms"] / bo["rel_rms"] - 1.0
         ok = change <= -NEW_MODEL_GAIN
         gains.append((mats[key].label if key in mats else key, ok))
