@@ -328,7 +328,11 @@ class GeometryTruth(Strict):
       (ROBOTIS e-Manual, "backlash" in each model's spec table);
     - `compliance_deg`: sag of an elevation arm under its own weight, ∝ the gravity torque, i.e.
       ∝ sin of the arm's angle from vertical: true θ = believed θ + c·sin θ (c = the sag when
-      horizontal; a 0.5 m aluminium arm on an XM430 sags ~0.1–0.3°). Elevation roles only.
+      horizontal; a 0.5 m aluminium arm on an XM430 sags ~0.1–0.3°). Elevation roles only;
+    - `light_distance_error_m`: the lamp's true distance from the sample centre minus the rig
+      file's `light_distance_m`. A tape measure to a lamp's filament is good to a few mm
+      (~2–5 mm on a 0.5 m arm; the filament sits inside an envelope). It scales the
+      irradiance the lab believes by (r/(r+δ))², so every calibrated f by ≈ 1 − 2δ/r.
 
     Encoder quantisation (4096 ticks per revolution) needs no setting: the emulated servos
     position and report whole ticks (0.088°/tick), as the real ones do."""
@@ -338,6 +342,7 @@ class GeometryTruth(Strict):
     compliance_deg: dict[Literal["light_theta", "camera_theta"], float] = Field(
         default_factory=dict
     )
+    light_distance_error_m: float = 0.0
 
 
 class Scene(Strict):

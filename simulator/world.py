@@ -227,7 +227,16 @@ class SimWorld:
 
     def positions_m(self) -> tuple[np.ndarray, np.ndarray]:
         axes = self.true_axes_rad()
-        return self.kinematics.light_position_m(axes), self.kinematics.camera_position_m(axes)
+        light, camera = (
+            self.kinematics.light_position_m(axes),
+            self.kinematics.camera_position_m(axes),
+        )
+        geo = self.scene.geometry
+        # The lamp's true distance (scene [geometry]): further along its own ray.
+        if geo.light_distance_error_m:
+            self.effect_counts["light_distance"] += 1
+            light = light * (1.0 + geo.light_distance_error_m / np.linalg.norm(light))
+        return light, camera
 
     def light_level(self) -> float:
         if self.rig.light.manual:

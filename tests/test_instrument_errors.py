@@ -84,6 +84,7 @@ def test_a_world_without_instrument_errors_runs_none(tmp_path) -> None:
     """The demo scene states no arm error: after a whole board calibration none has run."""
     world = prepare_backends(_rig(), load_scene(REPO / "configs" / "scenes" / "demo.toml"))
     world.true_axes_rad()
+    world.positions_m()
     assert sum(world.effect_counts.values()) == 0
 
 
@@ -92,8 +93,9 @@ def test_a_world_without_instrument_errors_runs_none(tmp_path) -> None:
 BETA = 0.05
 
 
-def _acquire(out, beta: float):
-    """A small run of the demo material, noise off (so the two runs differ only by β)."""
+def _acquire(out, beta: float, geometry: GeometryTruth | None = None):
+    """A small run of the demo material, noise off (so the two runs differ only by β or the
+    stated geometry error)."""
     from acquisition.config import PlanConfig
     from gonio.pipeline import AcquireSpec, acquire
 
@@ -110,7 +112,7 @@ def _acquire(out, beta: float):
     spec = AcquireSpec(
         rig=REPO / "configs" / "rigs" / "sim.toml",
         plan=plan,
-        scene=scene.model_copy(update={"sensor": sensor}),
+        scene=scene.model_copy(update={"sensor": sensor, "geometry": geometry or GeometryTruth()}),
         progress=False,
         operator=AutoOperator(),
     )
@@ -170,4 +172,34 @@ def test_nonlinearity_moves_f_by_beta_times_the_signal_fraction(tmp_path) -> Non
     assert u.max() > 0.2  # the run spans a useful part of the well
     bright = u > 0.05  # where the predicted effect (≥ 0.25 %) is well above DN rounding
     effect = (ratio[bright] - 1.0) / (BETA * u[bright])
+    assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
+
+
+#: 10 mm on the 0.5 m light arm: 2.5× a careful tape measure's error, so the effect (−4 %) is
+#: far above DN rounding and the sample's ±3 % spread of distances changes it by < 5 %.
+LIGHT_DISTANCE_ERROR_M = 0.010
+
+
+def test_light_distance_error_moves_f_by_minus_two_delta_over_r(tmp_path) -> None:
+    """The lamp 10 mm further than the rig file says: the lab's irradiance I cos θ_i / r² is
+    too large by ((r + δ)/r)², so each calibrated f is multiplied by (r/(r + δ))² ≈ 1 − 2δ/r
+    (first order in δ/r = 0.02; the second-order term adds 3δ²/r² = 0.12 % to the 4 % effect)."""
+    from acquisition.config import load_rig
+
+    r = load_rig(REPO / "configs" / "rigs" / "sim.toml").geometry.light_distance_m
+    exact = _acquire(tmp_path / "exact", 0.0)
+    far = _acquire(
+        tmp_path / "far", 0.0, GeometryTruth(light_distance_error_m=LIGHT_DISTANCE_ERROR_M)
+    )
+    key = lambda t: list(zip(t.extra["capture_id"], t.extra["pixel_x"], t.extra["pixel_y"],  # noqa: E731
+                             t.channel.astype(str), strict=True))  # fmt: skip
+    index = {k: i for i, k in enumerate(key(far))}
+    pairs = [(i, index[k]) for i, k in enumerate(key(exact)) if k in index]
+    assert len(pairs) > 0.9 * len(exact)
+    a, b = np.array(pairs).T
+    good = (exact.flags[a] == 0) & (far.flags[b] == 0) & (exact.f[a] > 0)
+    effect = (far.f[b][good] / exact.f[a][good] - 1.0) / (-2.0 * LIGHT_DISTANCE_ERROR_M / r)
+    assert good.sum() > 100
+    print(f"light distance +{LIGHT_DISTANCE_ERROR_M * 1e3:.0f} mm: measured/predicted effect "
+          f"median {np.median(effect):.3f} over {good.sum()} samples")  # fmt: skip
     assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
