@@ -41,6 +41,8 @@ CASES: list[tuple[str, dict]] = [
     ("two-lobe", {"fresnel": "none"}),  # GGX + GGX, Smith
     ("two-lobe", {"distribution": "student-t", "distribution2": "student-t", "fresnel": "none"}),
     ("heavy-tail", {"fresnel": "none"}),
+    ("abc", {"exponent": "2"}),
+    ("abc", {"exponent": "3"}),
 ]
 
 _VALUES = {
@@ -59,6 +61,9 @@ _VALUES = {
     "ks2": (0.1, 1.0),
     "m_ratio": (2.0, 10.0),
     "gamma": (1.7, 10.0),
+    "w": (0.05, 0.5),
+    "C": (0.5, 5.0),
+    "q": (0.1, 10.0),
 }
 
 

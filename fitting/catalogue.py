@@ -8,7 +8,7 @@ weight, F ≡ 1 where the model allows, so the albedo measures the normalisation
 
 from __future__ import annotations
 
-from fitting import anisotropic, models, multilobe, oren_nayar
+from fitting import abc, anisotropic, models, multilobe, oren_nayar
 from fitting.ngan import COOK_TORRANCE_OPTIONS
 from fitting.registry import ModelEntry, OptionSpec, register
 
@@ -279,8 +279,45 @@ def _register_multilobe() -> None:
     )
 
 
+def _register_abc() -> None:
+    register(
+        ModelEntry(
+            "abc",
+            abc.AbcLobe,
+            options=(
+                OptionSpec(
+                    "exponent",
+                    abc.EXPONENTS,
+                    "2",
+                    "p in the lobe's (d/w)^p: 2 is Löw et al.'s; 3 fits the gold film better",
+                ),
+            ),
+            aliases=("abc-lobe",),
+            summary="kd/π + a smooth-surface ABC lobe in the projected disk, Schlick F/F₀, "
+            "obliquity (cos θ_i cos θ_o)^k",
+            reference="Löw, Kronander, Ynnerman, Unger, ACM TOG 31(1):9, 2012 (§4); "
+            "Schlick, CGF 13(3), 1994",
+            needs=("specular", "off-specular", "grazing"),
+            checks=tuple(
+                (
+                    {"exponent": p},
+                    tuple(
+                        {"kd": 0.0, "ks": ks, "w": w, "C": c, "q": q, "k": k}
+                        for ks, w, c, q, k in (
+                            (1.0, 0.1, 1.0, 1.0, 1.0),
+                            (0.3, 0.5, 4.0, 20.0, 0.0),
+                        )
+                    ),
+                )
+                for p in abc.EXPONENTS
+            ),
+        )
+    )
+
+
 _register_established()
 _register_variants()
 _register_anisotropic()
 _register_rough_diffuse()
 _register_multilobe()
+_register_abc()

@@ -417,6 +417,8 @@ def test_shipped_document_is_consistent_with_its_csv() -> None:
     for key, label in labels.items():
         mrows = [r for r in rows if r["material"] == key]
         assert len(mrows) == len(rm.MODELS)
-        best = min(mrows, key=lambda r: r["rel_rms"])["model"]
+        # the page ranks converged chains only (all of them where none converged)
+        ranked = [r for r in mrows if doc._truthy(r["converged"])] or mrows
+        best = min(ranked, key=lambda r: r["rel_rms"])["model"]
         line = next(ln for ln in md.splitlines() if ln.startswith(f"- **{label}**"))
         assert f"**{best}** fits best" in line

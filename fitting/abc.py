@@ -1,0 +1,140 @@
+"""The ABC lobe: a smooth-surface scattering lobe in the projected disk (issue 19).
+
+    f(ω_i, ω_o) = kd/π + ks · F̂(ω_i·h) · (cos θ_i cos θ_o)^k · (1 + (2^(1/C) − 1)(d/w)^p)^(−C)
+
+* d = ‖(ω_i + ω_o)_xy‖: the distance, in the projected (surface-plane) unit disk, of ω_o from
+  the mirror direction of ω_i. Löw, Kronander, Ynnerman & Unger, "BRDF models for accurate and
+  efficient rendering of glossy surfaces", ACM TOG 31(1):9, 2012, §4: the smooth-surface model
+  S(f) = A / (1 + B f²)^C of the spatial frequency f ∝ ‖ω_r,p − ω_o,p‖, from the Rayleigh-Rice
+  theory of scattering by a slightly rough surface (Church & Takacs).
+* The lobe is written through its half-width w (the lobe is ks/2 at d = w):
+  B = (2^(1/C) − 1)/w^p. Löw's B and C trade off along a ridge in the posterior; w and C do not.
+  C sets the tail, which falls as d^(−pC). p is the option ``exponent``: 2 is Löw's form.
+* F̂ = 1 + q (1 − ω_i·h)⁵: Schlick's Fresnel (CGF 13(3), 1994, eq. 24) divided by its
+  normal-incidence value F₀ (q = 1/F₀ − 1). ks is then the lobe's height at normal incidence and
+  q shapes only the rise towards grazing, so ks and F₀ are not degenerate as ks·F₀ would be.
+* (cos θ_i cos θ_o)^k: the obliquity factor of the Rayleigh-Rice theory (k = 1) with a fitted
+  exponent k ∈ [0, 2]; k = 0 is Löw's form.
+
+Unlike a microfacet lobe, whose peak grows as 1/(cos θ_i cos θ_o) towards grazing, this lobe's
+peak stays near ks and its width in θ_o grows as 1/cos θ_o: what the gold vinyl film of the
+real-materials study does. On that study, ``exponent = 3`` was selected from a least-squares
+fit of p to the gold film's own samples (docs/real-materials.md says so); p free in the MCMC did
+not converge, which is why it is an option and not a parameter.
+
+Properties: reciprocal (d, ω_i·h = ω_o·h and the cosine product are symmetric in ω_i, ω_o) and
+isotropic; not energy conserving (nothing bounds ks; `gonio models --check` measures the
+albedo).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from fitting import kernels as _k
+from fitting.models import Model, Parameter, _above, _flat_parameters
+
+__all__ = ["AbcLobe", "abc_lobe", "EXPONENTS"]
+
+#: Allowed values of the ``exponent`` option (p in d^p).
+EXPONENTS = ("2", "3")
+
+_KD = Parameter("kd", "1", 0.0, 1.0)
+_KS = Parameter("ks", "sr^-1", 1e-4, 1e4, log=True)
+_W = Parameter("w", "1", 1e-3, 2.0, log=True)  # half-width in the projected disk (d ≤ 2)
+_C = Parameter("C", "1", 0.05, 20.0, log=True)
+_Q = Parameter("q", "1", 1e-3, 1e3, log=True)  # 1/F₀ − 1: F₀ from 0.001 to 0.999
+_KOBL = Parameter("k", "1", 0.0, 2.0)
+_NINF = -np.inf
+
+
+def abc_lobe(wi, wo, kd, ks, w, C, q, k, p: float = 2.0) -> np.ndarray:
+    """f of the module's equation, in numpy (the reference the kernel is checked against).
+    ``wi``, ``wo``: (N, 3) unit vectors; parameters scalars or broadcastable to (N,)."""
+    wi, wo = np.asarray(wi, dtype=np.float64), np.asarray(wo, dtype=np.float64)
+    above = _above(wi, wo)
+    s = wi + wo
+    norm = np.linalg.norm(s, axis=1)
+    cos_d = np.clip(np.sum(wi * s, axis=1) / np.where(norm > 0, norm, 1.0), 0.0, 1.0)  # ω_i·h
+    d = np.hypot(s[:, 0], s[:, 1])
+    b = np.expm1(np.log(2.0) / np.asarray(C, dtype=np.float64))  # 2^(1/C) − 1
+    lobe = np.exp(-np.asarray(C) * np.log1p(b * (d / np.asarray(w)) ** p))
+    fres = 1.0 + np.asarray(q) * (1.0 - cos_d) ** 5
+    obl = np.clip(wi[:, 2] * wo[:, 2], 0.0, 1.0) ** np.asarray(k)
+    return np.where(above, np.asarray(kd) / np.pi + np.asarray(ks) * fres * obl * lobe, 0.0)
+
+
+@njit(cache=True)
+def _abc_value(wi, wo, j, kd, ks, w, c, q, k, p):
+    sx, sy, sz = wi[j, 0] + wo[j, 0], wi[j, 1] + wo[j, 1], wi[j, 2] + wo[j, 2]
+    norm = math.sqrt(sx * sx + sy * sy + sz * sz)
+    cos_d = (wi[j, 0] * sx + wi[j, 1] * sy + wi[j, 2] * sz) / norm if norm > 0.0 else 1.0
+    cos_d = min(max(cos_d, 0.0), 1.0)
+    x = math.sqrt(sx * sx + sy * sy) / w
+    xp = x * x if p == 2.0 else x * x * x
+    lobe = math.exp(-c * math.log1p(math.expm1(math.log(2.0) / c) * xp))
+    one = 1.0 - cos_d
+    fres = 1.0 + q * (one * one) * (one * one) * one
+    cc = wi[j, 2] * wo[j, 2]
+    obl = 1.0 if k == 0.0 else math.exp(k * math.log(min(cc, 1.0)))
+    return kd / math.pi + ks * fres * obl * lobe
+
+
+@njit(cache=True)
+def _abc_block(wi, wo, kd, ks, w, c, q, k, rs, cs, p, log_out, out, b, n_chunks):
+    n = out.shape[1]
+    row = b // n_chunks
+    j0 = (b - row * n_chunks) * _k.CHUNK
+    for j in range(j0, min(j0 + _k.CHUNK, n)):
+        if wi[j, 2] <= 0.0 or wo[j, 2] <= 0.0:
+            out[row, j] = _NINF if log_out else 0.0
+            continue
+        r = row * rs + j * cs
+        f = _abc_value(wi, wo, j, kd[r], ks[r], w[r], c[r], q[r], k[r], p)
+        if log_out:
+            out[row, j] = math.log(f) if f > 0.0 else _NINF
+        else:
+            out[row, j] = f
+
+
+@njit(parallel=True, cache=True)
+def _abc_par(wi, wo, kd, ks, w, c, q, k, rs, cs, p, log_out, out):
+    n_chunks = (out.shape[1] + _k.CHUNK - 1) // _k.CHUNK
+    for b in prange(out.shape[0] * n_chunks):
+        _abc_block(wi, wo, kd, ks, w, c, q, k, rs, cs, p, log_out, out, b, n_chunks)
+
+
+@njit(cache=True)
+def _abc_ser(wi, wo, kd, ks, w, c, q, k, rs, cs, p, log_out, out):
+    n_chunks = (out.shape[1] + _k.CHUNK - 1) // _k.CHUNK
+    for b in range(out.shape[0] * n_chunks):
+        _abc_block(wi, wo, kd, ks, w, c, q, k, rs, cs, p, log_out, out, b, n_chunks)
+
+
+class AbcLobe(Model):
+    """kd/π + the ABC lobe of the module docstring; option ``exponent`` 2 (Löw's) | 3."""
+
+    def __init__(self, exponent: str = "2"):
+        if exponent not in EXPONENTS:
+            raise ValueError(f"abc: exponent={exponent!r}; choose one of {', '.join(EXPONENTS)}")
+        flags = {"reciprocal": True, "energy_conserving": False, "isotropic": True}
+        super().__init__("abc", (_KD, _KS, _W, _C, _Q, _KOBL), {"exponent": exponent}, flags)
+        self._p = float(exponent)
+
+    def _numpy(self, v, wi, wo, log):
+        f = abc_lobe(wi, wo, v["kd"], v["ks"], v["w"], v["C"], v["q"], v["k"], self._p)
+        if not log:
+            return f
+        with np.errstate(divide="ignore"):
+            return np.log(f)
+
+    def _numba(self, v, wi, wo, log, out):
+        names = ("kd", "ks", "w", "C", "q", "k")
+        flat, per_sample = _flat_parameters({n: v[n] for n in names}, out)
+        rs, cs = (out.shape[1], 1) if per_sample else (1, 0)
+        wi, wo = np.ascontiguousarray(wi), np.ascontiguousarray(wo)
+        cols = [flat[n] for n in names]
+        _k.dispatch("abc", _abc_par, _abc_ser, out.size, wi, wo, *cols, rs, cs, self._p, log, out)
