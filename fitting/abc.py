@@ -30,6 +30,7 @@ albedo).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 from numba import njit, prange
@@ -49,22 +50,25 @@ _C = Parameter("C", "1", 0.05, 20.0, log=True)
 _Q = Parameter("q", "1", 1e-3, 1e3, log=True)  # 1/F₀ − 1: F₀ from 0.001 to 0.999
 _KOBL = Parameter("k", "1", 0.0, 2.0)
 _NINF = -np.inf
+_NAMES = ("kd", "ks", "w", "C", "q", "k")
 
 
-def abc_lobe(wi, wo, kd, ks, w, C, q, k, p: float = 2.0) -> np.ndarray:
+def abc_lobe(wi, wo, params: Mapping[str, object], p: float = 2.0) -> np.ndarray:
     """f of the module's equation, in numpy (the reference the kernel is checked against).
-    ``wi``, ``wo``: (N, 3) unit vectors; parameters scalars or broadcastable to (N,)."""
+    ``wi``, ``wo``: (N, 3) unit vectors; ``params``: kd, ks, w, C, q, k, each a scalar or an
+    array broadcastable to (N,) or (W, N)."""
+    kd, ks, w, C, q, k = (np.asarray(params[n], dtype=np.float64) for n in _NAMES)
     wi, wo = np.asarray(wi, dtype=np.float64), np.asarray(wo, dtype=np.float64)
     above = _above(wi, wo)
     s = wi + wo
     norm = np.linalg.norm(s, axis=1)
     cos_d = np.clip(np.sum(wi * s, axis=1) / np.where(norm > 0, norm, 1.0), 0.0, 1.0)  # ω_i·h
     d = np.hypot(s[:, 0], s[:, 1])
-    b = np.expm1(np.log(2.0) / np.asarray(C, dtype=np.float64))  # 2^(1/C) − 1
-    lobe = np.exp(-np.asarray(C) * np.log1p(b * (d / np.asarray(w)) ** p))
-    fres = 1.0 + np.asarray(q) * (1.0 - cos_d) ** 5
-    obl = np.clip(wi[:, 2] * wo[:, 2], 0.0, 1.0) ** np.asarray(k)
-    return np.where(above, np.asarray(kd) / np.pi + np.asarray(ks) * fres * obl * lobe, 0.0)
+    b = np.expm1(np.log(2.0) / C)  # 2^(1/C) − 1
+    lobe = np.exp(-C * np.log1p(b * (d / w) ** p))
+    fres = 1.0 + q * (1.0 - cos_d) ** 5
+    obl = np.clip(wi[:, 2] * wo[:, 2], 0.0, 1.0) ** k
+    return np.where(above, kd / np.pi + ks * fres * obl * lobe, 0.0)
 
 
 def _geometry(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
@@ -130,15 +134,14 @@ class AbcLobe(Model):
         self._p = float(exponent)
 
     def _numpy(self, v, wi, wo, log):
-        f = abc_lobe(wi, wo, v["kd"], v["ks"], v["w"], v["C"], v["q"], v["k"], self._p)
+        f = abc_lobe(wi, wo, v, self._p)
         if not log:
             return f
         with np.errstate(divide="ignore"):
             return np.log(f)
 
     def _numba(self, v, wi, wo, log, out):
-        names = ("kd", "ks", "w", "C", "q", "k")
-        flat, per_sample = _flat_parameters({n: v[n] for n in names}, out)
+        flat, per_sample = _flat_parameters({n: v[n] for n in _NAMES}, out)
         rs, cs = (out.shape[1], 1) if per_sample else (1, 0)
         b2 = np.expm1(math.log(2.0) / flat["C"])  # 2^(1/C) − 1, once per parameter row
         cols = (flat["kd"], flat["ks"], flat["w"], flat["C"], b2, flat["q"], flat["k"])
