@@ -307,6 +307,14 @@ class GeometryConfig(Strict):
 
     preset: Literal["two-arm", "inplane"] = "two-arm"
     light_distance_m: float = Field(0.5, gt=0, le=10)
+    light_distance_sigma_m: float | None = Field(
+        None,
+        ge=0,
+        lt=1,
+        description="standard uncertainty (k = 1) of light_distance_m: how well the lamp's "
+        "distance was measured (a tape to a filament: ~2–5 mm). With the lamp's certified "
+        "scale it is a shared scale error 2σ/r in the samples' budget",
+    )
     camera_distance_m: float = Field(0.5, gt=0, le=10)
     min_separation_deg: float = Field(5.0, ge=0, le=90, description="light–camera occlusion")
     max_theta_deg: float = Field(85.0, gt=0, le=90)

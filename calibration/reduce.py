@@ -376,6 +376,21 @@ def _budget_components(rig: RigConfig, scale: _Scale, arm_offsets: dict | None) 
                 "shared_by": "every sample of a channel (the whole run)",
             }
         )
+    if scale.absolute and rig.geometry.light_distance_sigma_m is not None:
+        # E = I cos θ_i / r²: a distance error δ scales every f by (r/(r+δ))² ≈ 1 − 2δ/r, one
+        # error for the run. Not with a reference target, measured at the same lamp distance:
+        # its scale absorbs the distance.
+        rel = 2.0 * rig.geometry.light_distance_sigma_m / rig.geometry.light_distance_m
+        budget.append(
+            {
+                "component": "scale (lamp distance: 2σ_r/r)",
+                "type": "B",
+                "relative_sigma": dict.fromkeys(chans, rel),
+                "size": f"{100 * rel:.3g} % (σ_r {1e3 * rig.geometry.light_distance_sigma_m:.3g}"
+                f" mm at r = {rig.geometry.light_distance_m:g} m)",
+                "shared_by": "every sample of the run (all channels alike)",
+            }
+        )
     return budget + _arm_components(rig, arm_offsets)
 
 

@@ -52,15 +52,19 @@ def read_budget(metadata: dict) -> list[dict] | None:
 
 
 def scale_sigma(budget: list[dict] | None, channel: str) -> float | None:
-    """Relative σ of the shared scale for `channel` (None when the budget states none)."""
+    """Relative σ of the shared scale for `channel`: every ``scale…`` component of the budget
+    (the certificate, the lamp's distance, …) in quadrature — independent errors that each
+    multiply every f of the channel. None when the budget states none with a size."""
+    parts = []
     for comp in budget or []:
         rel = comp.get("relative_sigma")
         if str(comp.get("component", "")).startswith("scale") and isinstance(rel, dict):
             value = rel.get(channel)
             if value is None and rel:
                 value = float(np.sqrt(np.mean(np.square(list(rel.values())))))
-            return float(value) if value is not None else None
-    return None
+            if value is not None:
+                parts.append(float(value))
+    return float(np.sqrt(np.sum(np.square(parts)))) if parts else None
 
 
 def amplitude_parameters(model, params: dict[str, float]) -> tuple[str, ...]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +22,8 @@ from fitting.directions import isotropic_gonio_directions
 from fitting.fit import FitOptions, fit_samples
 from simulator.scene import BlendMaterial, DiffuseMaterial, RoughConductorMaterial
 from simulator.truth import direct_samples, material_reference_parameters
+
+REPO = Path(__file__).resolve().parent.parent
 
 MATERIAL = BlendMaterial(
     weight=0.25,
@@ -156,3 +159,36 @@ def test_coverage_with_a_shared_scale_error(truth_table) -> None:
         quadrature_hits += q["p2.5"] <= kd <= q["p97.5"]
     assert budget_hits >= 25, budget_hits
     assert quadrature_hits < 0.8 * REPEATS, quadrature_hits
+
+
+def test_lamp_distance_is_a_shared_scale_error_in_quadrature() -> None:
+    """A rig file's lamp-distance uncertainty σ_r becomes a budget component of relative size
+    2σ_r/r (E ∝ 1/r², first order) with the lamp's certified scale, none with a reference
+    target (measured at the same distance, its scale absorbs it); the fit's systematic part
+    takes every scale component in quadrature: √(1 %² + (2·2.5 mm/0.5 m)²) = √2 %."""
+    from acquisition.config import load_rig
+    from calibration.reduce import _budget_components, _Scale
+
+    base = load_rig(REPO / "configs" / "rigs" / "sim.toml")
+    rig = base.model_copy(
+        update={
+            "geometry": base.geometry.model_copy(
+                update={"light_distance_m": 0.5, "light_distance_sigma_m": 0.0025}
+            ),
+            "light": base.light.model_copy(update={"intensity_rel_sigma": 0.01}),
+        }
+    )
+    certified = _Scale("certified", True, np.ones(3), np.full(3, 0.01))
+    budget = _budget_components(rig, certified, None)
+    dist = next(c for c in budget if c["component"].startswith("scale (lamp distance"))
+    assert dist["relative_sigma"] == dict.fromkeys("RGB", pytest.approx(0.01))
+    reference = dataclasses.replace(certified, method="reference", absolute=False)
+    assert not any("distance" in c["component"] for c in _budget_components(rig, reference, None))
+    model = models.get("torrance-sparrow", **OPTIONS)
+    params = {
+        "kd_G": {"median": 0.3, "p16": 0.299, "p84": 0.301},
+        "ks_G": {"median": 0.25, "p16": 0.249, "p84": 0.251},
+        "m": {"median": 0.2, "p16": 0.1995, "p84": 0.2005},
+    }
+    out, _ = add_systematic(params, model, ["G"], json.loads(json.dumps(budget)))
+    assert out["kd_G"]["sd_sys"] == pytest.approx(0.3 * np.hypot(0.01, 0.01), rel=1e-12)
