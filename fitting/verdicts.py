@@ -471,6 +471,26 @@ BINNING_WARN_SD = 0.3
 BINNING_FAIL_SD = 1.0
 
 
+def lobes_verdict(parameters: Mapping, draws: Mapping | None = None) -> dict:
+    """Whether a two-lobe fit's lobes are distinguishable (fitting.multilobe.check_lobes): a
+    warning naming why when they are not — the second lobe is then the prior's, not the data's."""
+    from fitting.multilobe import check_lobes
+
+    flat = None
+    if draws is not None:
+        flat = {k: np.asarray(v).reshape(-1) for k, v in draws.items() if k.startswith("ks")}
+    check = check_lobes(parameters, draws=flat)
+    if check.distinguishable:
+        return make_verdict("lobes", "ok", "the two lobes are distinguishable", "")
+    return make_verdict(
+        "lobes",
+        "warning",
+        "the two lobes are not distinguishable: " + "; ".join(check.reasons),
+        "fit one lobe (heavy-tail or torrance-sparrow), or measure where the broad lobe "
+        "differs from the sharp one (off-specular and grazing directions)",
+    )
+
+
 def binning_verdict(info: Mapping) -> dict:
     """What binning the samples (fitting.binning) moved: the largest linearised shift of a
     parameter in posterior sds (fitting.fit), with the bound on any combination beside it."""
@@ -527,6 +547,10 @@ def judge(fit, lik, mcmc) -> tuple[list[dict], dict]:
     ]
     if "binning" in fit.diagnostics:  # only binned fits (fitting.binning) have this verdict
         verdicts.append(binning_verdict(fit.diagnostics["binning"]))
+    if "m_ratio" in fit.parameters:  # two-lobe fits (fitting.multilobe) only
+        draws = fit.extras.get("draws")
+        natural = None if draws is None else space.natural_dict(draws)
+        verdicts.append(lobes_verdict(fit.parameters, natural))
     extra = {
         "converged": not failed_criteria,
         "converged_because": because,

@@ -201,6 +201,11 @@ def test_posterior_check_on_one_lobe_and_two_lobe_data():
     check_two = multilobe.check_lobes(res_two.parameters)
     assert not check_one.distinguishable, res_one.parameters
     assert check_two.distinguishable, (check_two, res_two.parameters)
+    # the fit itself says so, as a verdict (with the draws' weight correlation too)
+    lobes = {r: next(v for v in res.verdicts if v["name"] == "lobes") for r, res in
+             (("one", res_one), ("two", res_two))}  # fmt: skip
+    assert lobes["one"]["status"] == "warning" and "not distinguishable" in lobes["one"]["reason"]
+    assert lobes["two"]["status"] == "ok", lobes["two"]
     for name, value in (("m", 0.06), ("m_ratio", 6.0), ("ks_G", 0.5), ("ks2_G", 0.5)):
         p = res_two.parameters[name]
         assert p["p2.5"] <= value <= p["p97.5"], (name, p)
