@@ -306,6 +306,9 @@ def _register_abc() -> None:
                         for ks, w, c, q, k in (
                             (1.0, 0.1, 1.0, 1.0, 1.0),
                             (0.3, 0.5, 4.0, 20.0, 0.0),
+                            # ks = 10 sr⁻¹ on a broad lobe: albedo ≈ 12, as nothing in the model
+                            # bounds it (declared not energy conserving; --check measures it)
+                            (10.0, 0.5, 1.0, 1.0, 0.0),
                         )
                     ),
                 )
