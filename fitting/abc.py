@@ -59,11 +59,7 @@ def abc_lobe(wi, wo, params: Mapping[str, object], p: float = 2.0) -> np.ndarray
     array broadcastable to (N,) or (W, N)."""
     kd, ks, w, C, q, k = (np.asarray(params[n], dtype=np.float64) for n in _NAMES)
     wi, wo = np.asarray(wi, dtype=np.float64), np.asarray(wo, dtype=np.float64)
-    above = _above(wi, wo)
-    s = wi + wo
-    norm = np.linalg.norm(s, axis=1)
-    cos_d = np.clip(np.sum(wi * s, axis=1) / np.where(norm > 0, norm, 1.0), 0.0, 1.0)  # ω_i·h
-    d = np.hypot(s[:, 0], s[:, 1])
+    above, d, cos_d = _pair_terms(wi, wo)
     b = np.expm1(np.log(2.0) / C)  # 2^(1/C) − 1
     lobe = np.exp(-C * np.log1p(b * (d / w) ** p))
     fres = 1.0 + q * (1.0 - cos_d) ** 5
@@ -71,15 +67,20 @@ def abc_lobe(wi, wo, params: Mapping[str, object], p: float = 2.0) -> np.ndarray
     return np.where(above, kd / np.pi + ks * fres * obl * lobe, 0.0)
 
 
-def _geometry(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
-    """Per pair, once per direction set (not per parameter set): d, (1 − ω_i·h)⁵ and
-    log(cos θ_i cos θ_o) (rows 0–2; 0 / 0 / −inf below the horizon, where f is 0 anyway)."""
-    above = _above(wi, wo)
+def _pair_terms(wi: np.ndarray, wo: np.ndarray):
+    """(above the horizon, d = ‖(ω_i + ω_o)_xy‖, ω_i·h) per pair."""
     s = wi + wo
     norm = np.linalg.norm(s, axis=1)
     cos_d = np.clip(np.sum(wi * s, axis=1) / np.where(norm > 0, norm, 1.0), 0.0, 1.0)
+    return _above(wi, wo), np.hypot(s[:, 0], s[:, 1]), cos_d
+
+
+def _geometry(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """Per pair, once per direction set (not per parameter set): d, (1 − ω_i·h)⁵ and
+    log(cos θ_i cos θ_o) (rows 0–2; 0 / 0 / −inf below the horizon, where f is 0 anyway)."""
+    above, d, cos_d = _pair_terms(wi, wo)
     geo = np.empty((3, wi.shape[0]))
-    geo[0] = np.hypot(s[:, 0], s[:, 1])
+    geo[0] = d
     geo[1] = (1.0 - cos_d) ** 5
     with np.errstate(divide="ignore"):
         geo[2] = np.where(above, np.log(np.clip(wi[:, 2] * wo[:, 2], 0.0, 1.0)), _NINF)
