@@ -68,6 +68,7 @@ class SimCamera:
         )
         self.captures = 0
         self._reference_renderers: dict[str, Renderer] = {}
+        self.flat_falloff_runs = 0  # flat frames the source's non-uniformity was applied to
         self._boards: dict[str, Any] = {}
         self.world = world
 
@@ -153,7 +154,11 @@ class SimCamera:
         an integrating sphere's port; vignetting, PRNU and noise act as on any frame."""
         k = self.renderer.intrinsics
         L = self.flat_radiance(exposure_s) if radiance_W_m2_sr is None else radiance_W_m2_sr
-        return self._expose(np.full((int(k["height"]), int(k["width"]), 3), L), exposure_s)
+        field = np.full((int(k["height"]), int(k["width"]), 3), L)
+        if self.scene.flat_source_falloff:  # a non-uniform source (scene flat_source_falloff)
+            self.flat_falloff_runs += 1
+            field *= (1.0 - self.scene.flat_source_falloff * flat_source_profile(k))[..., None]
+        return self._expose(field, exposure_s)
 
     def capture_reference(
         self,
@@ -220,3 +225,14 @@ class SimCamera:
         # Lab time: the shutter is open for the exposure, then the sensor reads out.
         self.clock.sleep(exposure_s + self.readout_s)
         return Frame(data=data, suffix=suffix, metadata=meta)
+
+
+def flat_source_profile(intrinsics: dict) -> np.ndarray:
+    """ρ/ρ_corner per pixel (0 on the optical axis, 1 at the frame's farthest corner), ρ =
+    ((u − cx)/fx)² + ((v − cy)/fy)²: the shape of the flat source's falloff."""
+    h, w = int(intrinsics["height"]), int(intrinsics["width"])
+    vv, uu = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
+    rho = ((uu - intrinsics["cx"]) / intrinsics["fx"]) ** 2 + (
+        (vv - intrinsics["cy"]) / intrinsics["fy"]
+    ) ** 2
+    return rho / rho.max()

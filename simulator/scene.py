@@ -362,6 +362,12 @@ class Scene(Strict):
     # Radiance of the flat-field source (integrating sphere port); unset: the level a lab
     # would set for the flat exposure (half the full well on axis, SimCamera.flat_radiance).
     flat_source_radiance_W_m2_sr: float | None = Field(None, gt=0)
+    # The flat source's own non-uniformity, a flat-field error the lab cannot see: its radiance
+    # falls by this fraction from the frame's centre to its corner, quadratically in the
+    # pixel's off-axis ρ = r²/f² (L = L₀(1 − a ρ/ρ_corner)). Integrating spheres: ≤ 1 % over
+    # a port; LED flat panels: 2–5 % (vendors' uniformity specs). The flat then carries it
+    # into every frame: calibrated f × 1/(1 − a ρ/ρ_corner) ≈ 1 + a ρ/ρ_corner.
+    flat_source_falloff: float = Field(0.0, ge=0, lt=1)
     seed: int = 0
 
 

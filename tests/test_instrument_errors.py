@@ -93,10 +93,13 @@ def test_a_world_without_instrument_errors_runs_none(tmp_path) -> None:
 BETA = 0.05
 
 
-def _acquire(out, beta: float, geometry: GeometryTruth | None = None):
-    """A small run of the demo material, noise off (so the two runs differ only by β or the
-    stated geometry error)."""
-    from acquisition.config import PlanConfig
+def _acquire(
+    out, beta: float, geometry: GeometryTruth | None = None, flat_falloff: float | None = None
+):
+    """A small run of the demo material, noise off (so the two runs differ only by β, the
+    stated geometry error or the flat source's falloff). With ``flat_falloff`` the run records
+    a flat field (8 frames) from a source of that falloff, and calibration uses it."""
+    from acquisition.config import CalibrationPhasesConfig, FlatPhaseConfig, PlanConfig
     from gonio.pipeline import AcquireSpec, acquire
 
     scene = load_scene(REPO / "configs" / "scenes" / "demo.toml")
@@ -108,11 +111,20 @@ def _acquire(out, beta: float, geometry: GeometryTruth | None = None):
         theta_o_deg=(0.0, 30.0, 50.0),
         delta_phi_deg=(180.0, 120.0),
         exposures_s=(0.016,),
+        calibration=CalibrationPhasesConfig(
+            flat=None if flat_falloff is None else FlatPhaseConfig(count=8)
+        ),
     )
     spec = AcquireSpec(
         rig=REPO / "configs" / "rigs" / "sim.toml",
         plan=plan,
-        scene=scene.model_copy(update={"sensor": sensor, "geometry": geometry or GeometryTruth()}),
+        scene=scene.model_copy(
+            update={
+                "sensor": sensor,
+                "geometry": geometry or GeometryTruth(),
+                "flat_source_falloff": flat_falloff or 0.0,
+            }
+        ),
         progress=False,
         operator=AutoOperator(),
     )
@@ -202,4 +214,42 @@ def test_light_distance_error_moves_f_by_minus_two_delta_over_r(tmp_path) -> Non
     assert good.sum() > 100
     print(f"light distance +{LIGHT_DISTANCE_ERROR_M * 1e3:.0f} mm: measured/predicted effect "
           f"median {np.median(effect):.3f} over {good.sum()} samples")  # fmt: skip
+    assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
+
+
+#: 5 % from centre to corner: an LED flat panel's uniformity spec (integrating spheres ≤ 1 %).
+FLAT_FALLOFF = 0.05
+
+
+def test_flat_source_falloff_moves_f_by_the_inverse_profile(tmp_path) -> None:
+    """A flat source whose radiance falls as 1 − a ρ/ρ_corner: the master flat's gain carries
+    that profile (its normalisation is the fitted value on the optical axis, where the profile
+    is 1), so each calibrated f is divided by it: f × 1/(1 − a ρ/ρ_corner), ρ at the sample's
+    4×4 block centre (the profile is smooth: its mean over a block differs from its centre
+    value by < 1e-4 of a here)."""
+    from simulator.camera import flat_source_profile
+    from simulator.render import Renderer
+
+    scene = load_scene(REPO / "configs" / "scenes" / "demo.toml")
+    k = Renderer(scene).intrinsics
+    profile = flat_source_profile(k)
+    exact = _acquire(tmp_path / "exact", 0.0, flat_falloff=0.0)
+    bent = _acquire(tmp_path / "falloff", 0.0, flat_falloff=FLAT_FALLOFF)
+    key = lambda t: list(zip(t.extra["capture_id"], t.extra["pixel_x"], t.extra["pixel_y"],  # noqa: E731
+                             t.channel.astype(str), strict=True))  # fmt: skip
+    index = {kk: i for i, kk in enumerate(key(bent))}
+    pairs = [(i, index[kk]) for i, kk in enumerate(key(exact)) if kk in index]
+    assert len(pairs) > 0.9 * len(exact)
+    a, b = np.array(pairs).T
+    good = (exact.flags[a] == 0) & (bent.flags[b] == 0) & (exact.f[a] > 0)
+    # pixel_x, pixel_y: the block's centre in index units (pixel i spans [i, i + 1))
+    px = np.floor(exact.extra["pixel_x"][a][good] + 0.5).astype(int)
+    py = np.floor(exact.extra["pixel_y"][a][good] + 0.5).astype(int)
+    predicted = 1.0 / (1.0 - FLAT_FALLOFF * profile[py, px]) - 1.0
+    measured = bent.f[b][good] / exact.f[a][good] - 1.0
+    far = predicted > 0.01  # where the effect (≥ 1 %) stands far above DN rounding
+    assert far.sum() > 100
+    effect = measured[far] / predicted[far]
+    print(f"flat falloff {FLAT_FALLOFF:.0%}: measured/predicted median {np.median(effect):.3f}"
+          f" over {far.sum()} samples")  # fmt: skip
     assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
