@@ -106,6 +106,15 @@ def test_lab_rig_end_to_end_on_the_pretend_lab(tmp_path: Path) -> None:
 
     cal = gonio("calibrate", str(run))
     assert cal.returncode == 0, cal.stderr
+    # ... and prints the samples' uncertainty budget, GUM style: one row per component the
+    # table's metadata records, with its type (the words may wrap in the table's cells)
+    from fitting.budget import read_budget
+    from fitting.samples import read_samples
+
+    budget = read_budget(read_samples(run / "samples.parquet").metadata)
+    assert budget and "Uncertainty budget" in cal.stdout
+    for comp in budget:
+        assert comp["component"].split()[0] in cal.stdout, (comp, cal.stdout)
     fit = gonio(
         "fit", str(run / "samples.parquet"), "--no-mcmc",
         "--option", "fresnel=none", "--option", "shadowing=smith-rational",
