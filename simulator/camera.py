@@ -53,8 +53,10 @@ class SimCamera:
         readout_s: float = 0.05,
         renderer: Renderer | None = None,
         world: WorldView | None = None,
+        camera_up_m: Callable[[], np.ndarray | None] | None = None,
     ) -> None:
         self.scene = scene
+        self._camera_up = camera_up_m  # the world's up vector when it is not the look-at one
         self.clock = clock
         self._positions = positions_m
         self._light_level = light_level
@@ -112,7 +114,8 @@ class SimCamera:
             renderer = self._board_renderer(st.board)
         else:
             renderer = self.renderer
-        radiance = renderer.render(light_pos, camera_pos, intensity_scale=level)
+        up = None if self._camera_up is None else self._camera_up()
+        radiance = renderer.render(light_pos, camera_pos, intensity_scale=level, camera_up=up)
         return self._expose(radiance, exposure_s)
 
     def _board_renderer(self, board: Any) -> Renderer:

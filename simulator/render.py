@@ -373,8 +373,11 @@ class Renderer:
         camera_target_m=(0.0, 0.0, 0.0),
         intensity_scale: float = 1.0,
         seed: int = 0,
+        camera_up=None,
     ) -> np.ndarray:
         """Radiance image (H, W, 3) float32 in W m⁻² sr⁻¹ for one light/camera pose.
+
+        ``camera_up``: the camera's up vector; default the look-at one (`look_at_up`).
 
         ``intensity_scale`` multiplies the lamp's radiant intensity. With no stray light radiance
         is linear in it, so it is applied to the image (exact, no parameter update); stray light
@@ -402,7 +405,7 @@ class Renderer:
                 else ("light.intensity.value", light.intensity_W_sr)
             )
             p[key] = mi.Color3f(*[float(b) * float(intensity_scale) for b in base])
-        up = look_at_up(camera_pos_m, camera_target_m)
+        up = look_at_up(camera_pos_m, camera_target_m) if camera_up is None else camera_up
         tw = mi.ScalarTransform4f().look_at(
             origin=[float(v) for v in camera_pos_m],
             target=[float(v) for v in camera_target_m],

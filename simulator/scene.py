@@ -333,6 +333,12 @@ class GeometryTruth(Strict):
       file's `light_distance_m`. A tape measure to a lamp's filament is good to a few mm
       (~2–5 mm on a 0.5 m arm; the filament sits inside an envelope). It scales the
       irradiance the lab believes by (r/(r+δ))², so every calibrated f by ≈ 1 − 2δ/r.
+    - `sample_tilt_deg`: the sample plane's tilt on its holder, {"x": τ_x, "y": τ_y}, in the
+      convention `gonio calibrate-rig` reports (calibration.arm_offsets.tilt_rotation: a point
+      p of the sample's frame sits at R_y(τ_y) R_x(τ_x) p in the rig's). A holder seated on a
+      burr or a sample on tape: a few tenths of a degree. Rendered by putting the arms in the
+      sample's frame (positions and the camera's roll rotated by R_τᵀ), which is the same
+      world; what is on the holder (sample, board, reference target) tilts with it.
 
     Encoder quantisation (4096 ticks per revolution) needs no setting: the emulated servos
     position and report whole ticks (0.088°/tick), as the real ones do."""
@@ -343,6 +349,7 @@ class GeometryTruth(Strict):
         default_factory=dict
     )
     light_distance_error_m: float = 0.0
+    sample_tilt_deg: dict[Literal["x", "y"], float] = Field(default_factory=dict)
 
 
 class Scene(Strict):

@@ -236,7 +236,23 @@ class SimWorld:
         if geo.light_distance_error_m:
             self.effect_counts["light_distance"] += 1
             light = light * (1.0 + geo.light_distance_error_m / np.linalg.norm(light))
+        if geo.sample_tilt_deg:  # the arms seen from the tilted sample's frame
+            self.effect_counts["sample_tilt"] += 1
+            r_t = _tilt_rotation(geo.sample_tilt_deg).T
+            light, camera = r_t @ light, r_t @ camera
         return light, camera
+
+    def camera_up_m(self) -> np.ndarray | None:
+        """The camera's up vector in the sample's frame when the sample is tilted (the rig's
+        look-at up rotated with the arms, so the camera's roll is the rig's); None otherwise
+        (the renderer's own look-at up)."""
+        tilt = self.scene.geometry.sample_tilt_deg
+        if not tilt:
+            return None
+        from simulator.render import look_at_up
+
+        camera = self.kinematics.camera_position_m(self.true_axes_rad())
+        return _tilt_rotation(tilt).T @ look_at_up(camera)
 
     def light_level(self) -> float:
         if self.rig.light.manual:
@@ -300,5 +316,20 @@ class SimWorld:
                 readout_s=rig.camera.readout_s,
                 renderer=self._renderer,
                 world=self._view(),
+                camera_up_m=self.camera_up_m,
             )
         return FaultyCamera(self.camera, self.camera_faults)
+
+
+def _tilt_rotation(tilt_deg: dict[str, float]) -> np.ndarray:
+    """R_τ = R_y(τ_y) R_x(τ_x), the convention of calibration.arm_offsets.tilt_rotation (the
+    simulator does not import calibration: the layers keep the world's truth and the lab's
+    estimate apart)."""
+    tx, ty = math.radians(tilt_deg.get("x", 0.0)), math.radians(tilt_deg.get("y", 0.0))
+    rx = np.array(
+        [[1.0, 0.0, 0.0], [0.0, math.cos(tx), -math.sin(tx)], [0.0, math.sin(tx), math.cos(tx)]]
+    )
+    ry = np.array(
+        [[math.cos(ty), 0.0, math.sin(ty)], [0.0, 1.0, 0.0], [-math.sin(ty), 0.0, math.cos(ty)]]
+    )
+    return ry @ rx

@@ -65,6 +65,23 @@ def test_backlash_shifts_the_recovered_zero_by_the_mean_lag(tmp_path) -> None:
     assert world.effect_counts["backlash"] > 0 and world.effect_counts["compliance"] == 0
 
 
+#: 0.6° and −0.4°: a sample seated on a burr; 20 % of each (≥ 0.08°) is well above the fit's
+#: ~0.02° precision on these views.
+TILT_DEG = {"x": 0.6, "y": -0.4}
+
+
+def test_sample_tilt_is_recovered_by_the_rig_calibration(tmp_path) -> None:
+    """A tilted sample (and so a tilted board on the holder): `gonio calibrate-rig` fits the
+    sample plane's tilt in the convention the scene states it in (R_y(τ_y) R_x(τ_x)), so the
+    first-order prediction of what it recovers is the tilt itself."""
+    doc, world, _ = _calibrate(tmp_path, GeometryTruth(sample_tilt_deg=TILT_DEG))
+    for axis, tilt in TILT_DEG.items():
+        got = doc["tilt_deg"][axis]
+        print(f"sample tilt {axis}: stated {tilt:+.2f}°, recovered {got:+.3f}°")
+        assert abs(got - tilt) <= 0.2 * abs(tilt), (axis, got, tilt)
+    assert world.effect_counts["sample_tilt"] > 0 and world.effect_counts["backlash"] == 0
+
+
 def test_arm_sag_shifts_the_recovered_zero_by_the_mean_sag(tmp_path) -> None:
     """Sag c·sin θ of the camera arm: the fitted constant offset is the mean of c·sin θ_k over
     the views (first order in c: sin of the true angle ≈ sin of the believed one)."""
