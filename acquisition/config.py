@@ -184,6 +184,13 @@ class CameraConfig(Strict):
     black_level_dn: float = Field(ge=0)
     white_level_dn: float = Field(gt=0, description="highest unclipped DN (measured)")
     read_noise_e: float = Field(0.0, ge=0, description="temporal dark noise, electrons")
+    linearity_error: float | None = Field(
+        None,
+        ge=0,
+        lt=0.5,
+        description="EMVA 1288 linearity error LE (fraction, from the datasheet: 0.1–1 % "
+        "typical): named in the samples' uncertainty budget",
+    )
     quantum_efficiency: float | None = Field(
         None, gt=0, le=1, description="at wavelength_m; needed for certified radiometry"
     )

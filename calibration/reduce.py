@@ -391,6 +391,21 @@ def _budget_components(rig: RigConfig, scale: _Scale, arm_offsets: dict | None) 
                 "shared_by": "every sample of the run (all channels alike)",
             }
         )
+    le = rig.camera.linearity_error
+    budget.append(
+        {
+            "component": "linearity (camera response, EMVA 1288)",
+            "type": "B",
+            # Not a scale: the error depends on each sample's signal level (bright and dim
+            # samples are bent differently), so it is named, never folded into the scale.
+            "relative_sigma": None,
+            "size": "not stated in the rig file (camera.linearity_error)"
+            if le is None
+            else f"up to {100 * le:.3g} % of f (the datasheet's linearity error)",
+            "shared_by": "every sample of similar signal level (the whole run)",
+            "propagated": False,
+        }
+    )
     return budget + _arm_components(rig, arm_offsets)
 
 

@@ -165,7 +165,8 @@ def test_lamp_distance_is_a_shared_scale_error_in_quadrature() -> None:
     """A rig file's lamp-distance uncertainty σ_r becomes a budget component of relative size
     2σ_r/r (E ∝ 1/r², first order) with the lamp's certified scale, none with a reference
     target (measured at the same distance, its scale absorbs it); the fit's systematic part
-    takes every scale component in quadrature: √(1 %² + (2·2.5 mm/0.5 m)²) = √2 %."""
+    takes every scale component in quadrature: √(1 %² + (2·2.5 mm/0.5 m)²) = √2 %. The camera's
+    linearity error is named beside them."""
     from acquisition.config import load_rig
     from calibration.reduce import _budget_components, _Scale
 
@@ -176,6 +177,7 @@ def test_lamp_distance_is_a_shared_scale_error_in_quadrature() -> None:
                 update={"light_distance_m": 0.5, "light_distance_sigma_m": 0.0025}
             ),
             "light": base.light.model_copy(update={"intensity_rel_sigma": 0.01}),
+            "camera": base.camera.model_copy(update={"linearity_error": 0.005}),
         }
     )
     certified = _Scale("certified", True, np.ones(3), np.full(3, 0.01))
@@ -190,5 +192,10 @@ def test_lamp_distance_is_a_shared_scale_error_in_quadrature() -> None:
         "ks_G": {"median": 0.25, "p16": 0.249, "p84": 0.251},
         "m": {"median": 0.2, "p16": 0.1995, "p84": 0.2005},
     }
-    out, _ = add_systematic(params, model, ["G"], json.loads(json.dumps(budget)))
+    out, words = add_systematic(params, model, ["G"], json.loads(json.dumps(budget)))
     assert out["kd_G"]["sd_sys"] == pytest.approx(0.3 * np.hypot(0.01, 0.01), rel=1e-12)
+    # the camera's linearity error (rig file, EMVA 1288) is named with its size, not carried
+    # as a scale (it is not one), and the fit says it is in no interval
+    lin = next(c for c in budget if c["component"].startswith("linearity"))
+    assert lin["size"].startswith("up to 0.5 %") and lin["propagated"] is False
+    assert any("linearity" in w and "not in any interval" in w for w in words), words

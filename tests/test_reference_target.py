@@ -132,6 +132,12 @@ def test_reference_method_recovers_mitsuba_brdf_despite_a_wrong_certificate(run,
         c for c in json.loads(table.metadata["gonio.budget"]) if c["component"].startswith("arm")
     ]
     assert len(arms) == 2 and all(c["propagated"] is False for c in arms)
+    # So is the camera's non-linearity: not a scale (it bends bright and dim samples
+    # differently), named with the datasheet's size or as unstated, never carried as a scale.
+    lin = [
+        c for c in json.loads(table.metadata["gonio.budget"]) if c["component"].startswith("lin")
+    ]
+    assert len(lin) == 1 and lin[0]["propagated"] is False and lin[0]["relative_sigma"] is None
     # The recovered effective intensity is the lamp's true one (the camera model is right in the
     # simulator), within 5σ of the reported uncertainty.
     k = np.array(meta["reference"]["k_W_sr"])
