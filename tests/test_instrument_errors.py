@@ -151,6 +151,19 @@ def _acquire(
     return reduce_run(out, ReduceOptions(bin_px=4, radiometry="certified"), progress=False)
 
 
+def _paired(base, other):
+    """Row indices (a into ``base``, b into ``other``) of the samples both runs hold — the same
+    capture, pixel block and channel — and where both are unflagged. Noise-free runs of one plan
+    differ only by the effect under test, so ``other.f[b] / base.f[a]`` measures it."""
+    key = lambda t: list(zip(t.extra["capture_id"], t.extra["pixel_x"], t.extra["pixel_y"],  # noqa: E731
+                             t.channel.astype(str), strict=True))  # fmt: skip
+    index = {k: i for i, k in enumerate(key(other))}
+    pairs = [(i, index[k]) for i, k in enumerate(key(base)) if k in index]
+    assert len(pairs) > 0.9 * len(base)
+    a, b = np.array(pairs).T
+    return a, b, (base.flags[a] == 0) & (other.flags[b] == 0)
+
+
 def _signal_fraction(run_dir, table, full_well_e: float, gain_e_per_dn: float) -> np.ndarray:
     """ū = mean electrons of each sample's 4×4 block / full well, from the linear run's frames."""
     from acquisition.store import RunStore
@@ -188,13 +201,7 @@ def test_nonlinearity_moves_f_by_beta_times_the_signal_fraction(tmp_path) -> Non
     bent = _acquire(tmp_path / "bent", BETA)
     world = world_scene(load_scene(REPO / "configs" / "scenes" / "demo.toml"),
                         load_rig(REPO / "configs" / "rigs" / "sim.toml"))  # fmt: skip
-    key = lambda t: list(zip(t.extra["capture_id"], t.extra["pixel_x"], t.extra["pixel_y"],  # noqa: E731
-                             t.channel.astype(str), strict=True))  # fmt: skip
-    index = {k: i for i, k in enumerate(key(bent))}
-    pairs = [(i, index[k]) for i, k in enumerate(key(linear)) if k in index]
-    assert len(pairs) > 0.9 * len(linear)
-    a, b = np.array(pairs).T
-    good = (linear.flags[a] == 0) & (bent.flags[b] == 0)
+    a, b, good = _paired(linear, bent)
     ratio = bent.f[b][good] / linear.f[a][good]
     u = _signal_fraction(tmp_path / "linear", linear, world.sensor.full_well_e,
                          world.sensor.gain_e_per_dn)[a][good]  # fmt: skip
@@ -220,13 +227,8 @@ def test_light_distance_error_moves_f_by_minus_two_delta_over_r(tmp_path) -> Non
     far = _acquire(
         tmp_path / "far", 0.0, GeometryTruth(light_distance_error_m=LIGHT_DISTANCE_ERROR_M)
     )
-    key = lambda t: list(zip(t.extra["capture_id"], t.extra["pixel_x"], t.extra["pixel_y"],  # noqa: E731
-                             t.channel.astype(str), strict=True))  # fmt: skip
-    index = {k: i for i, k in enumerate(key(far))}
-    pairs = [(i, index[k]) for i, k in enumerate(key(exact)) if k in index]
-    assert len(pairs) > 0.9 * len(exact)
-    a, b = np.array(pairs).T
-    good = (exact.flags[a] == 0) & (far.flags[b] == 0) & (exact.f[a] > 0)
+    a, b, good = _paired(exact, far)
+    good &= exact.f[a] > 0
     effect = (far.f[b][good] / exact.f[a][good] - 1.0) / (-2.0 * LIGHT_DISTANCE_ERROR_M / r)
     assert good.sum() > 100
     print(f"light distance +{LIGHT_DISTANCE_ERROR_M * 1e3:.0f} mm: measured/predicted effect "
@@ -252,13 +254,8 @@ def test_flat_source_falloff_moves_f_by_the_inverse_profile(tmp_path) -> None:
     profile = flat_source_profile(k)
     exact = _acquire(tmp_path / "exact", 0.0, flat_falloff=0.0)
     bent = _acquire(tmp_path / "falloff", 0.0, flat_falloff=FLAT_FALLOFF)
-    key = lambda t: list(zip(t.extra["capture_id"], t.extra["pixel_x"], t.extra["pixel_y"],  # noqa: E731
-                             t.channel.astype(str), strict=True))  # fmt: skip
-    index = {kk: i for i, kk in enumerate(key(bent))}
-    pairs = [(i, index[kk]) for i, kk in enumerate(key(exact)) if kk in index]
-    assert len(pairs) > 0.9 * len(exact)
-    a, b = np.array(pairs).T
-    good = (exact.flags[a] == 0) & (bent.flags[b] == 0) & (exact.f[a] > 0)
+    a, b, good = _paired(exact, bent)
+    good &= exact.f[a] > 0
     # pixel_x, pixel_y: the block's centre in index units (pixel i spans [i, i + 1))
     px = np.floor(exact.extra["pixel_x"][a][good] + 0.5).astype(int)
     py = np.floor(exact.extra["pixel_y"][a][good] + 0.5).astype(int)
