@@ -31,6 +31,7 @@ __all__ = [
     "amplitude_parameters",
     "add_systematic",
     "budget_words",
+    "left_out_words",
 ]
 
 #: Parameter-name prefixes tried as amplitudes (diffuse and lobe weights); the homogeneity
@@ -103,15 +104,7 @@ def add_systematic(
         return parameters, [
             "no uncertainty budget with these samples: intervals are statistical only"
         ]
-    # Components the fit does not carry (angle errors today): named, every time.
-    left_out = [
-        f"{c.get('component')} ({c.get('size')})" for c in budget if c.get("propagated") is False
-    ]
-    missing = (
-        ["not in any interval here, though shared by the samples: " + "; ".join(left_out)]
-        if left_out
-        else []
-    )
+    missing = left_out_words(budget)
     per_channel = {ch: scale_sigma(budget, ch) for ch in channels}
     if all(v is None for v in per_channel.values()):
         return parameters, [
@@ -146,6 +139,21 @@ def add_systematic(
         q["sd_total"] = None if sd_stat is None else math.hypot(sd_stat, sd_sys)
         out[name] = q
     return out, words + missing
+
+
+def left_out_words(budget: list[dict] | None, carried: tuple[str, ...] = ()) -> list[str]:
+    """The words naming the budget's components no interval holds (every time): those marked
+    not propagated and the arms' angle errors, unless among the `carried` ones
+    (fitting.nuisance)."""
+    left_out = [
+        f"{c.get('component')} ({c.get('size')})"
+        for c in budget or []
+        if c.get("component") not in carried
+        and (c.get("propagated") is False or str(c.get("component", "")).startswith("arm angles"))
+    ]
+    if not left_out:
+        return []
+    return ["not in any interval here, though shared by the samples: " + "; ".join(left_out)]
 
 
 def budget_words(budget: list[dict] | None) -> list[tuple[str, str, str, str]]:

@@ -31,19 +31,28 @@ from pathlib import Path
 import numpy as np
 
 from fitting import models
-from fitting.budget import add_systematic, read_budget
+from fitting.budget import add_systematic, left_out_words, read_budget
 from fitting.likelihood import Likelihood, dark_snr_of
 from fitting.lsq import fit_least_squares
 from fitting.mcmc import (
     ChainFile,
     ConvergenceTarget,
     McmcOptions,
+    chain_diagnostics,
     extend_chain,
     rhat_across,
     run_mcmc,
 )
 from fitting.mismatch import regional_discrepancy, sandwich_adjust
 from fitting.moves import SAMPLER_REVISION
+from fitting.nuisance import (
+    carried_words,
+    nuisance_effect,
+    sampler_coordinates,
+    shared_errors,
+    split_uncertainty,
+    with_nuisances,
+)
 from fitting.priors import DISCREPANCY, ParameterSpace, PriorsConfig, albedo_prior, load_priors
 from fitting.result import FitResult
 from fitting.samples import SampleTable
@@ -162,6 +171,10 @@ class FitOptions:
     # posterior is too narrow, and fit a model error per (θ_h, θ_d) region (fitting.mismatch;
     # `gonio fit --no-widen` keeps the plain posterior).
     widen_for_mismatch: bool = True
+    # The samples' shared errors (their budget: scale, arm zeros) as nuisance parameters the
+    # MCMC marginalises (fitting.nuisance); False, or without MCMC: the shared scale is added
+    # after the fit to the amplitudes (fitting.budget.add_systematic), angles are not carried.
+    shared_errors: bool = True
 
     def replace(self, **changes) -> FitOptions:
         return dataclasses.replace(self, **changes)
@@ -188,6 +201,13 @@ def _setup(table: SampleTable, opt: FitOptions):
         priors=priors,
         discrepancy=opt.discrepancy,
     )
+    shared = (
+        shared_errors(read_budget(table.metadata), channels)
+        if opt.shared_errors and opt.mcmc
+        else None
+    )
+    if shared is not None:
+        space = with_nuisances(space, shared)
     if opt.energy_conservation or (priors is not None and priors.energy_conservation):
         space.energy_prior = albedo_prior(model, space)
     lik = Likelihood(
@@ -230,6 +250,7 @@ def fit_samples(
     # The fractional discrepancy scales with the least-squares prediction, frozen (see
     # fitting.likelihood: a θ-dependent scale rewards overshooting, a measured one biases).
     lik.set_discrepancy_reference(lsq.x)
+    lik.set_angle_reference(lsq.x)  # the arms' zero errors linearised there (fitting.likelihood)
     x_lsq = _best_discrepancy(lik, lsq.x)
     out_dir = Path(out_dir) if out_dir is not None else None
     if out_dir is not None:
@@ -238,9 +259,13 @@ def fit_samples(
     extras: dict = {"lsq": lsq, "likelihood": lik, "space": space}
     if opt.mcmc:
         h5 = None if out_dir is None else out_dir / f"fit-{opt.model}.h5"
-        res = _run_ensembles(lik, lsq, x_lsq, opt, rng, h5, progress)
+        coords = sampler_coordinates(space, _model, x_lsq)
+        res = _run_ensembles(lik, lsq, x_lsq, opt, rng, h5, progress, coords)
         if opt.converge is not None:
-            res = extend_chain(res, lik.log_prob, opt.converge, opt.steps, opt.seed) or res
+            log_prob = lik.log_prob if coords is None else coords.wrap(lik.log_prob)
+            res = extend_chain(res, log_prob, opt.converge, opt.steps, opt.seed) or res
+        if coords is not None:
+            res = _from_sampler(res, coords, max(1, int(opt.ensembles)))
         draws = res.flat
         flat_lp = res.log_prob.reshape(-1)
         lp_lsq = lik.log_prob(x_lsq)
@@ -268,11 +293,7 @@ def fit_samples(
             "stop_reason": "no_mcmc",
         }
     draws = _mismatch(lik, draws, opt, extras, diagnostics)
-    # The shared errors of the samples' budget (fitting.budget): sd_stat / sd_sys / sd_total.
-    parameters, budget_notes = add_systematic(
-        summarise(space, draws, x_map), _model, channels, read_budget(table.metadata)
-    )
-    diagnostics["budget"] = budget_notes
+    parameters, diagnostics["budget"] = _with_budget(space, draws, x_map, _model, table)
     if "gonio.binned" in table.metadata:  # the samples were binned (fitting.binning)
         diagnostics["binning"] = _binning_diagnostics(
             table, lik, x_map, opt.binned_source, eps_corrected
@@ -298,6 +319,21 @@ def fit_samples(
     return result
 
 
+def _with_budget(space, draws, x_map, model, table) -> tuple[dict, list[str]]:  # noqa: ANN001
+    """(parameter summaries with sd_stat / sd_sys / sd_total, the words on the samples' budget):
+    from the nuisance parameters' draws (fitting.nuisance), or the shared scale added after the
+    fit (fitting.budget) when the fit carries none."""
+    budget = read_budget(table.metadata)
+    summary = summarise(space, draws, x_map)
+    if space.shared_errors is None:
+        return add_systematic(summary, model, list(space.channels), budget)
+    nat = space.to_natural(draws)
+    words = [carried_words(space.shared_errors, space.names, nat)]
+    return split_uncertainty(summary, space.names, nat), words + left_out_words(
+        budget, space.shared_errors.carried
+    )
+
+
 def _mismatch(lik, draws, opt: FitOptions, extras: dict, diagnostics: dict) -> np.ndarray:
     """The draws the intervals come from: with the discrepancy term, widened where the
     residuals say the posterior is too narrow for the best approximation, and a model error
@@ -307,7 +343,12 @@ def _mismatch(lik, draws, opt: FitOptions, extras: dict, diagnostics: dict) -> n
     if opt.discrepancy:
         info: dict = {"applied": False, "reason": "--no-widen"}
         if opt.widen_for_mismatch:
-            draws, info = sandwich_adjust(lik, draws)
+            # Only the statistical part is widened: the nuisances' effect is set aside and
+            # added back (fitting.nuisance.nuisance_effect).
+            nuis = [i for i, s in enumerate(lik.space.specs) if s.prior_sigma is not None]
+            effect = nuisance_effect(draws, nuis)
+            draws, info = sandwich_adjust(lik, draws - effect)
+            draws = np.clip(draws + effect, *lik.space.bounds)
         info["regions"] = regional_discrepancy(lik, np.median(draws, axis=0))
         diagnostics["mismatch"] = info
     extras["draws"] = draws
@@ -385,13 +426,33 @@ def _chain_notes(res, h5) -> list[str]:  # noqa: ANN001
     ]
 
 
-def _run_ensembles(lik, lsq, x_lsq, opt: FitOptions, rng, h5, progress: bool):
-    """emcee from a ball around the LSQ point; several ensembles pooled (R̂ across them)."""
+def _from_sampler(res, coords, ensembles: int):  # noqa: ANN001, ANN202
+    """The chain in θ from the sampler's coordinates (fitting.nuisance.SamplerCoordinates):
+    ln p without the Jacobian, τ / ESS / R̂ recomputed on θ (R̂ across the ensembles)."""
+    res.log_prob = res.log_prob - coords.log_jacobian(res.chain)
+    res.chain = coords.from_sampler(res.chain)
+    res.tau, ess, rhat = chain_diagnostics(res.chain)
+    res.ess = ess
+    if ensembles > 1:
+        walkers = res.chain.shape[1] // ensembles
+        rhat = rhat_across(
+            [res.chain[:, k * walkers : (k + 1) * walkers] for k in range(ensembles)]
+        )
+    res.rhat = rhat
+    return res
+
+
+def _run_ensembles(lik, lsq, x_lsq, opt: FitOptions, rng, h5, progress: bool, coords=None):
+    """emcee from a ball around the LSQ point; several ensembles pooled (R̂ across them). With
+    `coords` the sampler walks in its coordinates (the chain stays in them here)."""
     lo, hi = lik.space.bounds
     scale = None
     if lsq.cov is not None:
         scale = np.sqrt(np.clip(np.diag(lsq.cov), 0, None))
         scale = np.where(scale > 0, scale, 1e-3)
+        for i, s in enumerate(lik.space.specs):  # a nuisance held by least squares: its prior
+            if s.prior_sigma is not None and not lsq.cov[i, i] > 0:
+                scale[i] = s.prior_sigma
     fingerprint = _fingerprint(
         lik, opt.model, dict(opt.model_options), opt.likelihood, opt.nu, opt.censor
     )
@@ -402,10 +463,17 @@ def _run_ensembles(lik, lsq, x_lsq, opt: FitOptions, rng, h5, progress: bool):
         target_ess=opt.target_ess,
         moves=opt.moves,
     )
+    log_prob, x0 = lik.log_prob, x_lsq
+    if coords is not None:
+        log_prob, x0, (lo, hi) = (
+            coords.wrap(lik.log_prob),
+            coords.to_sampler(x_lsq),
+            coords.bounds(lo, hi),
+        )
     runs = [
         run_mcmc(
-            lik.log_prob,
-            x_lsq,
+            log_prob,
+            x0,
             (lo, hi),
             mcmc,
             rng=rng,
@@ -520,7 +588,8 @@ def _binning_diagnostics(table, lik, x_map, source, eps_corrected) -> dict:  # n
 
 
 def _goodness(lik, x_map) -> dict:
-    k = lik.space.ndim
+    # nuisance parameters are held by their priors, not fitted freely: no degree of freedom
+    k = sum(s.prior_sigma is None for s in lik.space.specs)
     n = lik.n_exact
     r = lik.residuals(x_map, "sigma")
     ll = float(lik.log_likelihood(x_map)[0])

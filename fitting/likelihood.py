@@ -47,6 +47,7 @@ import numpy as np
 from scipy.special import gammaln, log_ndtr
 
 from fitting.kernels import gauss_discrepancy_sum
+from fitting.nuisance import ANGLE_NUISANCES, arm_deltas, arm_rows, shifted_directions
 from fitting.priors import ParameterSpace
 from fitting.samples import Flags, SampleTable
 
@@ -86,6 +87,11 @@ class ChannelData:
     #: Rows a censored sample stands for (a bin of fitting.binning; 1 for exact rows, whose
     #: bin is already one sample of the combined σ); None: every row is one observation.
     weight: np.ndarray | None = None
+    #: Per row, what the arm-angle nuisances need (fitting.nuisance.arm_rows).
+    arm: dict | None = None
+    #: The capture (pose) each row was measured in, or None: rows of one pose share its angle
+    #: errors, the clusters of the mismatch sandwich (fitting.mismatch).
+    cluster: np.ndarray | None = None
 
     def censored_sum(self, terms: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Σ of (W, n) ``terms`` of the ``mask`` rows (n = mask.sum()), each weighted by its
@@ -101,6 +107,14 @@ class ChannelData:
     @cached_property
     def sigma2(self) -> np.ndarray:
         return np.ascontiguousarray(self.sigma**2)
+
+
+def _irradiance_ratio(d: ChannelData, wi_true: np.ndarray) -> np.ndarray:
+    """cos θ_i(true) / cos θ_i(recorded): calibration divided each sample's radiance by the
+    irradiance I cos θ_i / r² of the recorded light direction, so where the light arm's zero is
+    off the measured f is the BRDF at the true directions times this ratio (first order
+    −tan θ_i · δ: 1 % at θ_i = 50°, δ = 0.5°)."""
+    return wi_true[..., 2] / d.wi[:, 2]
 
 
 class Likelihood:
@@ -152,6 +166,8 @@ class Likelihood:
         with np.errstate(invalid="ignore"):
             f_all = np.where(dark, np.maximum(f_all, float(dark_snr) * table.sigma), f_all)
         counts = table.extra.get("n_rows")
+        arm = arm_rows(table)
+        captures = table.extra.get("capture_id")
         for ch in channels:
             sel = usable & (table.channel == ch)
             kind_arr = np.where(sat[sel], 1, np.where(dark[sel], 2, 0)).astype(np.int8)
@@ -171,6 +187,8 @@ class Likelihood:
                     np.asarray(table.theta_o[sel], dtype=np.float64),
                     kind_arr,
                     weight,
+                    {k: np.ascontiguousarray(v[sel]) for k, v in arm.items()},
+                    None if captures is None else np.asarray(captures[sel], dtype=np.int64),
                 )
             )
         self.n = int(sum(d.f.size for d in self.data))
@@ -179,6 +197,7 @@ class Likelihood:
                 "no usable samples to fit (after removing flagged and non-finite rows)"
             )
         self._f_ref: list[np.ndarray] | None = None  # discrepancy reference f̃, per channel
+        self._angle_ref: tuple | None = None  # arm-zero linearisation (set_angle_reference)
         # Constant of the Student-t density, precomputed once.
         self._t_const = float(
             gammaln((self.nu + 1) / 2) - gammaln(self.nu / 2) - 0.5 * np.log(self.nu * np.pi)
@@ -205,14 +224,84 @@ class Likelihood:
         """Model values per channel, each (W, N_c), for θ (W, D) in the sampled space."""
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
         natural = self.space.natural_dict(theta)
+        angles = {n: np.radians(natural[n]) for n in ANGLE_NUISANCES if n in natural}
         out = []
-        for d in self.data:
+        for i, d in enumerate(self.data):
+            params = self.space.channel_params(natural, d.channel)
+            shifts = arm_deltas(d.arm, angles) if angles else {}
             with np.errstate(all="ignore"):
-                fm = self.model.evaluate(self.space.channel_params(natural, d.channel), d.wi, d.wo)
-            out.append(
-                np.broadcast_to(np.asarray(fm, dtype=np.float64), (theta.shape[0], d.f.size))
-            )
+                if shifts and self._angle_ref is not None:
+                    fm = self._evaluate_linearised(i, params, shifts)
+                elif any(np.any(v != 0) for v in shifts.values()):
+                    fm = self._evaluate_shifted(d, params, shifts)
+                else:  # the arms where they were recorded
+                    fm = self.model.evaluate(params, d.wi, d.wo)
+            fm = np.broadcast_to(np.asarray(fm, dtype=np.float64), (theta.shape[0], d.f.size))
+            scale = natural.get(f"scale_{d.channel}")
+            out.append(fm if scale is None else fm * scale[:, None])
         return out
+
+    def set_angle_reference(self, theta: np.ndarray | None) -> None:
+        """Linearise the arms' zero errors about θ₀'s (the MCMC's hot path; None: exact).
+
+        f(p, δ) = f(p, δ₀) · (1 + Σ_k (δ_k − δ₀_k) ∂ln f/∂δ_k), the log-derivatives taken
+        once at (p₀, δ₀) by central differences. Exact at δ₀ and, the model being smooth in
+        the angles, off by ½ ∂²f/∂δ² Δδ² + ∂²ln f/∂δ∂p Δδ Δp: with Δδ a posterior's width
+        around a least-squares δ₀ (≈ 0.01°, at most the prior's 0.2–0.3°) and a lobe of width
+        m, of relative size Δδ²/m² ≤ 1e-4 at m = 0.05 — far below a sample's noise."""
+        if theta is None:
+            self._angle_ref = None
+            return
+        x0 = np.atleast_2d(np.asarray(theta, dtype=np.float64))
+        natural = self.space.natural_dict(x0)
+        angles = {n: np.radians(natural[n]) for n in ANGLE_NUISANCES if n in natural}
+        if not angles:
+            self._angle_ref = None
+            return
+        kin = getattr(self.space.shared_errors, "kinematics", "two-arm")
+        h = np.radians(1e-3)  # 0.001°: central differences, truncation ~h², rounding ~ε/h
+        ref = []
+        for d in self.data:
+            p0 = self.space.channel_params(natural, d.channel)
+            delta0 = {a: v[0] for a, v in arm_deltas(d.arm, angles).items()}  # (N,) per arm
+            phi_i, phi_o = d.arm["phi_i"], d.arm["phi_o"]
+            wi0, wo0 = shifted_directions(d.wi, d.wo, phi_i, phi_o, delta0, kin)
+            with np.errstate(all="ignore"):
+                ratio0 = _irradiance_ratio(d, wi0)
+                f0 = np.asarray(self.model.evaluate(p0, wi0, wo0), float).reshape(-1) * ratio0
+                grads = {}
+                for arm in delta0:
+                    fs = []
+                    for sign in (1.0, -1.0):
+                        dd = dict(delta0, **{arm: delta0[arm] + sign * h})
+                        wi, wo = shifted_directions(d.wi, d.wo, phi_i, phi_o, dd, kin)
+                        f = np.asarray(self.model.evaluate(p0, wi, wo), float).reshape(-1)
+                        fs.append(f * _irradiance_ratio(d, wi))
+                    g = (fs[0] - fs[1]) / (2 * h) / f0
+                    grads[arm] = np.where(np.isfinite(g), g, 0.0)
+            ref.append((wi0, wo0, ratio0, grads, delta0))
+        self._angle_ref = ref
+
+    def _evaluate_linearised(self, i: int, params: dict, shifts: dict) -> np.ndarray:
+        wi0, wo0, ratio0, grads, delta0 = self._angle_ref[i]
+        fm = np.asarray(self.model.evaluate(params, wi0, wo0), dtype=np.float64) * ratio0
+        lin = 1.0
+        for arm, g in grads.items():
+            lin = lin + (shifts[arm] - delta0[arm]) * g
+        return fm * lin
+
+    def _evaluate_shifted(self, d: ChannelData, params: dict, shifts: dict) -> np.ndarray:
+        """The model per walker at the directions its arm-zero nuisances give (W, N): one
+        kernel call over the W·N direction pairs, each row with its walker's parameters."""
+        kin = getattr(self.space.shared_errors, "kinematics", "two-arm")
+        n_walkers = next(iter(shifts.values())).shape[0]
+        wi, wo = shifted_directions(d.wi, d.wo, d.arm["phi_i"], d.arm["phi_o"], shifts, kin)
+        n = d.f.size
+        wi = np.broadcast_to(wi, (n_walkers, n, 3)).reshape(-1, 3)
+        wo = np.broadcast_to(wo, (n_walkers, n, 3)).reshape(-1, 3)
+        rows = {k: np.broadcast_to(v, (n_walkers, n)).reshape(-1) for k, v in params.items()}
+        f = np.asarray(self.model.evaluate(rows, wi, wo), dtype=np.float64).reshape(n_walkers, n)
+        return f * _irradiance_ratio(d, wi.reshape(n_walkers, n, 3))
 
     def log_likelihood(self, theta: np.ndarray) -> np.ndarray:
         """ln L for θ (W, D) → (W,), without the prior. −∞ where the model is not finite."""
@@ -353,6 +442,14 @@ class Likelihood:
             out.append(r)
         r = np.concatenate(out)
         return np.where(np.isfinite(r), r, 1e10)
+
+    @property
+    def clusters(self) -> np.ndarray | None:
+        """The capture of every row, channels concatenated as pointwise_log_likelihood's
+        columns; None when the samples do not say (imported data: rows independent)."""
+        if any(d.cluster is None for d in self.data):
+            return None
+        return np.concatenate([d.cluster for d in self.data])
 
     @property
     def n_exact(self) -> int:

@@ -103,7 +103,8 @@ def fit_least_squares(
     max_nfev: int | None = None,
 ) -> LsqResult:
     """Multi-start bounded least squares of ``lik.residuals``. The discrepancy parameter (if
-    any) is held at its start value: residuals do not depend on it.
+    any) is held at its start value: residuals do not depend on it. Nuisance parameters start
+    at their prior's centre and carry their prior as residuals (σ weighting) or stay there.
 
     ``loss`` defaults to soft_l1 (f_scale 3: only residuals beyond ~3σ are down-weighted, so
     Gaussian data are fitted nearly as by plain L2) for ``sigma`` weighting and to linear for
@@ -111,19 +112,36 @@ def fit_least_squares(
     """
     space = lik.space
     lo, hi = space.bounds
+    # The shared errors' nuisance parameters (fitting.nuisance) start at their prior's centre
+    # and, with σ weighting, are fitted with their Gaussian prior as extra residuals x/σ_prior
+    # (the posterior mode: without it the data alone cannot tell a scale from the amplitudes,
+    # and the MCMC's first walkers need the angles' data-given width, often ≪ their prior's).
+    # The discrepancy is held: residuals do not depend on it.
+    nuisance = np.array([s.prior_sigma is not None for s in space.specs], dtype=bool)
     free = np.array([s.base != "discrepancy" for s in space.specs])
+    if weighting != "sigma":
+        free &= ~nuisance
+    prior_sd = np.array([s.prior_sigma or 1.0 for s in space.specs])[free & nuisance]
+    centre = np.array([s.prior_center for s in space.specs])
+    prior_c = centre[free & nuisance]
+    prior_cols = np.flatnonzero(nuisance[free])
     if loss is None:
         loss = "soft_l1" if weighting == "sigma" else "linear"
     if f_scale is None:
         f_scale = 3.0 if weighting == "sigma" else 1.0
     if starts is None:
         starts = start_points(lik, n_starts, seed)
+    starts = np.array(starts, dtype=np.float64)
+    starts[:, nuisance] = centre[nuisance]
 
     def make_fun(base: np.ndarray):
         def fun(xf: np.ndarray) -> np.ndarray:
             x = base.copy()
             x[free] = xf
-            return lik.residuals(x, weighting)
+            r = lik.residuals(x, weighting)
+            if not prior_cols.size:
+                return r
+            return np.concatenate([r, (xf[prior_cols] - prior_c) / prior_sd])
 
         return fun
 

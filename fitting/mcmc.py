@@ -58,6 +58,7 @@ __all__ = [
     "ConvergenceTarget",
     "convergence_verdict",
     "extend_chain",
+    "chain_diagnostics",
 ]
 
 
@@ -405,7 +406,7 @@ def convergence_verdict(
     }
 
 
-def _diagnose(chain: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def chain_diagnostics(chain: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """τ (emcee, Sokal window), ESS = N W / τ and split R̂ of a chain (N, W, D)."""
     tau = np.asarray(emcee.autocorr.integrated_time(chain, tol=0), dtype=np.float64)
     return tau, chain.shape[0] * chain.shape[1] / tau, split_rhat(chain)
@@ -433,7 +434,7 @@ def extend_chain(
     it0 = int(res.iterations)
     extra = 0
     sampler = None
-    tau, ess, rhat = _diagnose(chain)
+    tau, ess, rhat = chain_diagnostics(chain)
     t0 = time.perf_counter()
     while it0 + extra < max_steps and not target.met(rhat, ess):
         if sampler is None:
@@ -452,7 +453,7 @@ def extend_chain(
         extra += n
         chain = np.concatenate([res.chain, sampler.get_chain()])
         lp = np.concatenate([res.log_prob, sampler.get_log_prob()])
-        tau, ess, rhat = _diagnose(chain)
+        tau, ess, rhat = chain_diagnostics(chain)
     if sampler is None:
         return None
     return McmcResult(

@@ -111,8 +111,17 @@ def _predict_exact(lik, x: np.ndarray) -> np.ndarray:
 
 
 def _model_columns(space) -> np.ndarray:
-    """Indices of the model's parameters in θ (everything but the discrepancy)."""
-    return np.array([i for i, s in enumerate(space.specs) if s.base != "discrepancy"], dtype=int)
+    """Indices of the model's parameters in θ (everything but the discrepancy and the shared
+    errors' nuisance parameters, which the caller holds: fitting.nuisance)."""
+    return np.array(
+        [i for i, s in enumerate(space.specs) if s.base != "discrepancy" and s.prior_sigma is None],
+        dtype=int,
+    )
+
+
+def _adjustable_columns(space) -> np.ndarray:
+    """The model's parameters and the discrepancy: everything but the nuisance parameters."""
+    return np.array([i for i, s in enumerate(space.specs) if s.prior_sigma is None], dtype=int)
 
 
 def _discrepancy_of(space, draws: np.ndarray) -> float:
@@ -233,6 +242,49 @@ def _sandwich_map(lik, draws: np.ndarray, cols: np.ndarray, lev: np.ndarray):
     return a_z * sd[:, None] / sd[None, :], lam_c, lam
 
 
+def _cluster_map(lik, draws: np.ndarray, cols: np.ndarray, lev: np.ndarray):
+    """The linear map over the model's ``cols`` that widens ``draws`` to the cluster-robust
+    sandwich where that is wider, or None (no clusters, too few, or a singular information).
+
+    Rows of one pose share that pose's angle errors — backlash, arm sag, a drift step — which
+    no per-row score sees: summed per pose before the outer product, the scores give the
+    cluster-robust J = G/(G − 1) Σ_g s_g s_gᵀ of G poses (Liang & Zeger 1986), consistent
+    whether or not a pose's rows are correlated. Only the model's parameters: the discrepancy
+    s is a variance, whose information vanishes as s → 0, so 16 poses' J would blow its
+    interval up to the prior's box; it keeps the rows' sandwich. Needs more than 2 poses per
+    parameter (else J is singular or noise)."""
+    clusters = lik.clusters
+    if clusters is None or cols.size == 0:
+        return None
+    x = np.median(draws, axis=0)
+    sd = draws[:, cols].std(axis=0)
+    if not np.all(sd > 0):
+        return None
+    step = 0.05 * sd
+    info_obs = _stencil_hessian(lik, x, cols, step) * np.outer(sd, sd)
+    psi = _scores(lik, x, cols, step) * sd
+    ok = np.all(np.isfinite(psi), axis=1) & np.isfinite(lev)
+    psi = psi[ok] / (1.0 - np.clip(lev[ok], 0.0, 0.99))[:, None]
+    groups, inverse = np.unique(clusters[ok], return_inverse=True)
+    if groups.size <= 2 * cols.size:
+        return None
+    per = np.zeros((groups.size, cols.size))
+    np.add.at(per, inverse, psi)
+    j = per.T @ per * groups.size / (groups.size - 1)
+    try:
+        i_inv = np.linalg.inv(info_obs)
+        chol = np.linalg.cholesky(np.cov(draws[:, cols] / sd, rowvar=False))
+    except np.linalg.LinAlgError:
+        return None
+    target = i_inv @ j @ i_inv
+    c_inv = np.linalg.inv(chol)
+    lam, u = np.linalg.eigh(c_inv @ target @ c_inv.T)
+    if not np.all(np.isfinite(lam)):
+        return None
+    a_z = chol @ u @ np.diag(np.sqrt(np.maximum(lam, 1.0))) @ u.T @ c_inv
+    return a_z * sd[:, None] / sd[None, :]
+
+
 def sandwich_adjust(lik, draws: np.ndarray) -> tuple[np.ndarray, dict]:
     """(draws moved so their covariance is the HC3 sandwich where that is wider, info).
 
@@ -270,7 +322,7 @@ def sandwich_adjust(lik, draws: np.ndarray) -> tuple[np.ndarray, dict]:
     with np.errstate(all="ignore"):
         lev = _leverage(lik, x, _discrepancy_of(space, draws))
         found = None
-        for cols in (np.arange(space.ndim), model_cols):
+        for cols in (_adjustable_columns(space), model_cols):
             found = _sandwich_map(lik, draws, cols, lev)
             if found is not None:
                 break
@@ -281,6 +333,15 @@ def sandwich_adjust(lik, draws: np.ndarray) -> tuple[np.ndarray, dict]:
     lo, hi = space.bounds
     center = draws[:, cols].mean(axis=0)
     moved = apply_transform(draws, cols, center, a, (lo, hi))
+    with np.errstate(all="ignore"):
+        by_pose = _cluster_map(lik, moved, model_cols, lev)
+    if by_pose is not None:  # a second widening, for what the poses share (see _cluster_map)
+        a2 = np.eye(cols.size)
+        pos = np.searchsorted(cols, model_cols)
+        a2[np.ix_(pos, pos)] = by_pose
+        a = a2 @ a
+        moved = apply_transform(draws, cols, center, a, (lo, hi))
+        info["method"] += "; then cluster-robust by pose (Liang & Zeger 1986)"
     sd0 = draws[:, cols].std(axis=0)
     sd1 = moved[:, cols].std(axis=0)
     names = [space.specs[i].name for i in cols]

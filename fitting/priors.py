@@ -88,6 +88,10 @@ class ParameterSpec:
     lower: float
     upper: float
     log: bool
+    #: A nuisance parameter's Gaussian prior σ and centre in the sampled space (ln s for a
+    #: scale, degrees for an angle; fitting.nuisance); None: the flat box prior.
+    prior_sigma: float | None = None
+    prior_center: float = 0.0
 
     @property
     def internal_bounds(self) -> tuple[float, float]:
@@ -124,6 +128,8 @@ class ParameterSpace:
     shared: frozenset[str]
     fixed: dict[str, float] = field(default_factory=dict)
     energy_prior: Callable[[Mapping[str, np.ndarray]], np.ndarray] | None = None
+    #: The shared errors carried as nuisance parameters (fitting.nuisance.SharedErrors).
+    shared_errors: object | None = None
 
     @classmethod
     def build(
@@ -217,6 +223,11 @@ class ParameterSpace:
         return b[:, 0], b[:, 1]
 
     @cached_property
+    def _gaussian(self) -> list[int]:
+        """Indices of the nuisance parameters (Gaussian prior)."""
+        return [i for i, s in enumerate(self.specs) if s.prior_sigma is not None]
+
+    @cached_property
     def is_log(self) -> np.ndarray:
         return np.array([s.log for s in self.specs], dtype=bool)
 
@@ -262,6 +273,9 @@ class ParameterSpace:
         lo, hi = self.bounds
         inside = np.all(np.isfinite(theta) & (theta >= lo) & (theta <= hi), axis=1)
         lp = np.where(inside, 0.0, -np.inf)
+        for i in self._gaussian:
+            spec = self.specs[i]
+            lp -= 0.5 * ((theta[:, i] - spec.prior_center) / spec.prior_sigma) ** 2
         if self.energy_prior is not None and inside.any():
             extra = np.asarray(self.energy_prior(self.natural_dict(theta[inside])), float)
             lp[inside] += np.where(np.isfinite(extra), extra, -np.inf)

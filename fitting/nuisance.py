@@ -1,0 +1,460 @@
+"""The samples' shared errors as nuisance parameters of the fit (issue 17 item 3).
+
+A shared error is one error for every sample it touches: the radiometric scale of a channel
+(the lamp's certificate, its distance) multiplies every f of the run; an arm's encoder zero
+shifts every angle that arm sets. Added to each sample's σ in quadrature it would average
+away as 1/√N. Here each is a parameter of the posterior with the budget's prior, and the MCMC
+marginalises it:
+
+* ``scale_<CH>``: f_measured = s_CH · f_model, ln s_CH ~ N(0, σ_CH) — σ_CH the quadrature sum
+  of the budget's ``scale…`` components of that channel (fitting.budget.scale_sigma). Sampled
+  as ln s, so with amplitudes sampled as logarithms the ridge ln kd + ln s = const is straight
+  (the differential-evolution moves follow straight ridges). Channels get independent scales:
+  the marginal interval of each parameter is the same whether the channels' scale errors are
+  correlated or not (a parameter sees its own channel's scale only; shared shape parameters
+  see none, the model being homogeneous in its amplitudes).
+* ``light_theta_zero``, ``camera_theta_zero`` (degrees): the true elevation of an arm is the
+  recorded one plus δ ~ N(0, σ), so every direction that arm sets turns by δ about the
+  horizontal axis normal to the arm's vertical plane (the arm's azimuth per capture comes
+  from the samples' metadata ``gonio.arm_azimuths``, written by calibration; a table without
+  it uses each sample's own azimuth, which is wrong near the normal, where pixels' azimuths
+  scatter). On an ``inplane`` rig the camera's signed elevation is positive on the specular
+  side (acquisition.kinematics): there θ_o grows with δ, on the light's side it shrinks.
+* ``camera_phi_zero`` (degrees, two-arm rigs): the relative azimuth φ_o − φ_i moves by
+  δ_camera_phi − δ_light_phi (an isotropic BRDF sees only the difference), σ their
+  quadrature sum.
+* ``sample_tilt_x``, ``sample_tilt_y`` (degrees): the sample's plane tilted on its holder by
+  R_τ = R_y(τ_y) R_x(τ_x) (calibrate-rig's convention), every direction seen from the sample
+  is R_τᵀ ω.
+* With the light's direction, the irradiance calibration divided by moves too: the measured f
+  is the BRDF at the true directions times cos θ_i(true) / cos θ_i(recorded)
+  (fitting.likelihood).
+
+The fit reports each parameter's spread split by the law of total variance over the draws:
+Var θ = E[Var(θ | δ)] + Var(E[θ | δ]); the second term (E[θ | δ] by least squares on the
+nuisance draws, linear to first order in the small δ) is the systematic part, the rest the
+statistical part.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fitting.budget import scale_sigma
+
+__all__ = [
+    "SharedErrors",
+    "shared_errors",
+    "ANGLE_NUISANCES",
+    "is_nuisance",
+    "shifted_directions",
+    "split_uncertainty",
+    "carried_words",
+    "with_nuisances",
+    "nuisance_effect",
+    "SamplerCoordinates",
+    "sampler_coordinates",
+    "arm_rows",
+    "arm_deltas",
+    "ARMS",
+]
+
+#: Prior box of a nuisance parameter, in its prior σ: wide enough never to bind (P(|z| > 6) ≈
+#: 2e-9), finite so the sampler's box is.
+PRIOR_BOX_SIGMA = 6.0
+
+#: The arm angles a nuisance moves (radians, true − recorded): the two elevations, the camera's
+#: azimuth relative to the light's, and the sample's tilt about x and y.
+ARMS = ("light_theta", "camera_theta", "camera_phi", "tilt_x", "tilt_y")
+#: Angle nuisances: fitted name → (the arm angle it moves, how): "zero" by itself, "sag" times
+#: the sine of the arm's elevation, "play" by −½ the side of the axis' last move (the arm lags
+#: it), "play_light_phi" by +½ the side of the light's azimuth axis (its lag turns the light,
+#: so the azimuth relative to it, the other way).
+ANGLE_TERMS = {
+    "light_theta_zero": ("light_theta", "zero"),
+    "camera_theta_zero": ("camera_theta", "zero"),
+    "camera_phi_zero": ("camera_phi", "zero"),
+    "sample_tilt_x": ("tilt_x", "zero"),
+    "sample_tilt_y": ("tilt_y", "zero"),
+    "light_theta_sag": ("light_theta", "sag"),
+    "camera_theta_sag": ("camera_theta", "sag"),
+    "light_theta_play": ("light_theta", "play"),
+    "camera_theta_play": ("camera_theta", "play"),
+    "light_phi_play": ("camera_phi", "play_light_phi"),
+    "camera_phi_play": ("camera_phi", "play"),
+}
+ANGLE_NUISANCES = tuple(ANGLE_TERMS)
+#: Budget keys (sigma_deg) of the zeros → the nuisance, combined in quadrature.
+_ZERO_KEYS = {
+    "light_theta_zero": ("light_theta",),
+    "camera_theta_zero": ("camera_theta",),
+    "camera_phi_zero": ("camera_phi", "light_phi"),
+    "sample_tilt_x": ("tilt_x",),
+    "sample_tilt_y": ("tilt_y",),
+}
+
+
+@dataclass(frozen=True)
+class SharedErrors:
+    """What the fit carries: relative scale σ per channel, angle σ per nuisance (degrees), and
+    the rig's kinematics preset (how a camera-elevation zero moves θ_o)."""
+
+    scale_sigma: dict[str, float]
+    angle_sigma_deg: dict[str, float]
+    kinematics: str = "two-arm"
+    #: Prior centres (degrees) of angle nuisances not centred on 0 (the gears' play).
+    angle_center_deg: dict[str, float] = field(default_factory=dict)
+    #: Budget components the fit carries (by name), for the words.
+    carried: tuple[str, ...] = ()
+
+    def __bool__(self) -> bool:
+        return bool(self.scale_sigma or self.angle_sigma_deg)
+
+
+def shared_errors(budget: list[dict] | None, channels: list[str]) -> SharedErrors | None:
+    """The shared errors of `budget` the fit can carry for `channels`; None when it states
+    none with a size."""
+    scales = {}
+    carried = []
+    for ch in channels:
+        sig = scale_sigma(budget, ch)
+        if sig is not None and sig > 0:
+            scales[ch] = sig
+    if scales:
+        carried += [
+            str(c.get("component"))
+            for c in budget or []
+            if str(c.get("component", "")).startswith("scale")
+            and isinstance(c.get("relative_sigma"), dict)
+        ]
+    angles: dict[str, float] = {}
+    centers: dict[str, float] = {}
+    kinematics = "two-arm"
+    for comp in budget or []:
+        name = str(comp.get("component", ""))
+        sig = comp.get("sigma_deg")
+        if name.startswith("arm angles: encoder zeros") and isinstance(sig, dict) and sig:
+            kinematics = str(comp.get("kinematics", kinematics))
+            n0 = len(angles)
+            for nuis, keys in _ZERO_KEYS.items():
+                if kinematics == "inplane" and nuis == "camera_phi_zero":
+                    continue  # no azimuth arms: a turntable's zero turns both directions alike
+                total = math.sqrt(sum(float(sig[k]) ** 2 for k in keys if sig.get(k) is not None))
+                if total > 0:
+                    angles[nuis] = total
+            if len(angles) > n0:
+                carried.append(name)
+        elif name.startswith("arm angles: gear backlash"):
+            kinematics = str(comp.get("kinematics", kinematics))
+            play, sag = comp.get("play_deg"), comp.get("sag_sigma_deg")
+            if play:
+                for nuis in (
+                    "light_theta_play", "camera_theta_play", "light_phi_play", "camera_phi_play"
+                ):  # fmt: skip
+                    if kinematics == "inplane" and nuis.endswith("phi_play"):
+                        continue
+                    # the datasheet's play ± 50 %: gears wear and horns differ
+                    angles[nuis], centers[nuis] = 0.5 * float(play), float(play)
+            if sag:
+                angles["light_theta_sag"] = angles["camera_theta_sag"] = float(sag)
+            if play or sag:
+                carried.append(name)
+    out = SharedErrors(scales, angles, kinematics, centers, tuple(carried))
+    return out if out else None
+
+
+def is_nuisance(spec) -> bool:  # noqa: ANN001 (fitting.priors.ParameterSpec)
+    return getattr(spec, "prior_sigma", None) is not None
+
+
+def _rotate_elevation(w: np.ndarray, arm_phi: np.ndarray, delta) -> np.ndarray:  # noqa: ANN001
+    """Directions w (N, 3) turned by δ (radians; scalar or (W, 1)) about the horizontal axis
+    a = (−sin φ, cos φ, 0) normal to the arm's vertical plane (Rodrigues): positive δ raises
+    the arm away from the normal, toward its azimuth φ."""
+    a = np.stack([-np.sin(arm_phi), np.cos(arm_phi), np.zeros_like(arm_phi)], axis=-1)
+    d = np.asarray(delta, dtype=np.float64)
+    c, s = np.cos(d)[..., None], np.sin(d)[..., None]
+    return w * c + np.cross(a, w) * s + a * (np.sum(a * w, axis=-1)[..., None] * (1.0 - c))
+
+
+def shifted_directions(
+    wi: np.ndarray,
+    wo: np.ndarray,
+    arm_phi_i: np.ndarray,
+    arm_phi_o: np.ndarray,
+    delta_rad: dict,
+    kinematics: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(ω_i, ω_o) of the samples, each (N, 3) or (W, N, 3), when the arm angles are off by
+    `delta_rad` ({arm in ARMS: radians, scalar, (W, 1) or (W, N)}; module docstring). Each arm
+    turns about the axis normal to its own vertical plane, whose azimuth `arm_phi_*` is the
+    arm's (the pose's, also where the arm stands on the normal), not the pixel's."""
+    d_i = delta_rad.get("light_theta", 0.0)
+    d_o = delta_rad.get("camera_theta", 0.0)
+    if kinematics == "inplane":
+        # positive camera elevation is across the normal from the light (the specular side)
+        side = np.where(np.cos(arm_phi_o - arm_phi_i) < 0.0, 1.0, -1.0)
+        d_o = np.asarray(d_o, dtype=np.float64) * side
+    wi = _rotate_elevation(wi, arm_phi_i, d_i)
+    wo = _rotate_elevation(wo, arm_phi_o, d_o)
+    d_phi = np.asarray(delta_rad.get("camera_phi", 0.0), dtype=np.float64)
+    if np.any(d_phi != 0):
+        c, s = np.cos(d_phi)[..., None], np.sin(d_phi)[..., None]
+        x, y = wo[..., 0:1], wo[..., 1:2]
+        wo = np.concatenate([x * c - y * s, x * s + y * c, wo[..., 2:3]], axis=-1)
+    tx = np.asarray(delta_rad.get("tilt_x", 0.0), dtype=np.float64)
+    ty = np.asarray(delta_rad.get("tilt_y", 0.0), dtype=np.float64)
+    if np.any(tx != 0) or np.any(ty != 0):
+        wi, wo = _untilt(wi, tx, ty), _untilt(wo, tx, ty)
+    return wi, wo
+
+
+def arm_deltas(rows: dict[str, np.ndarray], natural_rad: dict[str, np.ndarray]) -> dict:
+    """{arm: (W, N) radians} from the angle nuisances' values {name: (W,) radians} and the rows'
+    arm data (:func:`arm_rows`)."""
+    out: dict[str, np.ndarray] = {}
+    for name, value in natural_rad.items():
+        arm, how = ANGLE_TERMS[name]
+        if how == "zero":
+            coef = 1.0
+        elif how == "sag":
+            coef = rows["sin_" + arm]
+        elif how == "play":
+            coef = -0.5 * rows["side_" + arm]
+        else:  # play_light_phi: the light lags its move, φ_o − φ_i the other way
+            coef = 0.5 * rows["side_light_phi"]
+        term = np.asarray(value, dtype=np.float64)[:, None] * coef
+        out[arm] = out[arm] + term if arm in out else term
+    return out
+
+
+def _untilt(w: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> np.ndarray:
+    """R_τᵀ w: a holder-frame direction in the frame of a sample tilted by R_τ = R_y(τ_y)
+    R_x(τ_x) (calibrate-rig's convention, calibration.arm_offsets.tilt_rotation)."""
+    cx, sx = np.cos(tx)[..., None], np.sin(tx)[..., None]
+    cy, sy = np.cos(ty)[..., None], np.sin(ty)[..., None]
+    x, y, z = w[..., 0:1], w[..., 1:2], w[..., 2:3]
+    x, z = cy * x - sy * z, sy * x + cy * z  # R_yᵀ
+    y, z = cx * y + sx * z, -sx * y + cx * z  # then R_xᵀ
+    return np.concatenate(
+        [np.broadcast_to(x, np.broadcast_shapes(x.shape, y.shape)), y, z], axis=-1
+    )
+
+
+def split_uncertainty(
+    parameters: dict[str, dict], names: list[str], natural_draws: np.ndarray
+) -> dict[str, dict]:
+    """Each non-nuisance parameter's summary with ``sd_total`` (half its 16–84 % width: the
+    draws hold every error), ``sd_sys`` and ``sd_stat`` — its spread split by the share of
+    variance the nuisance draws explain (module docstring), sd_stat² + sd_sys² = sd_total²."""
+    nuis = [i for i, n in enumerate(names) if _is_nuisance_name(n)]
+    if not nuis:
+        return parameters
+    z = natural_draws[:, nuis] - natural_draws[:, nuis].mean(axis=0)
+    out = {}
+    for i, name in enumerate(names):
+        q = dict(parameters[name])
+        if i not in nuis:
+            y = natural_draws[:, i] - natural_draws[:, i].mean()
+            coef, *_ = np.linalg.lstsq(z, y, rcond=None)
+            var = float(np.var(y))
+            share = float(np.clip(np.var(z @ coef) / var, 0.0, 1.0)) if var > 0 else 0.0
+            total = 0.5 * (q["p84"] - q["p16"])
+            q["sd_total"] = total
+            q["sd_sys"] = total * math.sqrt(share)
+            q["sd_stat"] = total * math.sqrt(1.0 - share)
+        out[name] = q
+    return out
+
+
+def _is_nuisance_name(name: str) -> bool:
+    return name.startswith("scale_") or name in ANGLE_NUISANCES
+
+
+def carried_words(shared: SharedErrors, names: list[str], natural_draws: np.ndarray) -> str:
+    """One line: which shared errors the intervals carry, each nuisance's prior σ and what the
+    data made of it (posterior median ± sd)."""
+    parts = []
+    for i, name in enumerate(names):
+        if not _is_nuisance_name(name):
+            continue
+        col = natural_draws[:, i]
+        if name.startswith("scale_"):
+            prior = 100 * shared.scale_sigma[name.removeprefix("scale_")]
+            parts.append(
+                f"{name} {100 * (np.median(col) - 1):+.2f} ± {100 * np.std(col):.2f} % "
+                f"(prior ± {prior:.3g} %)"
+            )
+        else:
+            prior = shared.angle_sigma_deg[name]
+            centre = shared.angle_center_deg.get(name, 0.0)
+            parts.append(
+                f"{name} {np.median(col):+.3f} ± {np.std(col):.3f}° "
+                f"(prior {centre:+.3g} ± {prior:.3g}°)"
+            )
+    return "shared errors marginalised as nuisance parameters (in every interval): " + "; ".join(
+        parts
+    )
+
+
+def with_nuisances(space, shared: SharedErrors):  # noqa: ANN001, ANN201 (ParameterSpace)
+    """`space` with the nuisance parameters of `shared` appended (module docstring)."""
+    import dataclasses
+
+    from fitting.priors import ParameterSpec
+
+    k = PRIOR_BOX_SIGMA
+    extra = [
+        ParameterSpec(
+            f"scale_{ch}",
+            "scale",
+            ch,
+            "1",
+            math.exp(-k * sig),
+            math.exp(k * sig),
+            True,
+            prior_sigma=sig,
+        )  # fmt: skip
+        for ch, sig in shared.scale_sigma.items()
+        if ch in space.channels
+    ]
+    for name, sig in shared.angle_sigma_deg.items():
+        c = shared.angle_center_deg.get(name, 0.0)
+        extra.append(ParameterSpec(name, name, None, "deg", c - k * sig, c + k * sig, False,
+                                   prior_sigma=sig, prior_center=c))  # fmt: skip
+    return dataclasses.replace(space, specs=space.specs + tuple(extra), shared_errors=shared)
+
+
+def nuisance_effect(draws: np.ndarray, nuisance_cols: list[int]) -> np.ndarray:
+    """The part of the draws (S, D) the nuisance parameters account for: their own deviation
+    from the mean and, in every other column, its least-squares regression on them
+    (E[θ | δ] − E[θ], linear in the small δ). draws − effect are the draws at the nuisances'
+    mean — the statistical part, which the mismatch widening may scale (fitting.mismatch)
+    without scaling the systematic part."""
+    effect = np.zeros_like(draws)
+    if not nuisance_cols:
+        return effect
+    z = draws[:, nuisance_cols] - draws[:, nuisance_cols].mean(axis=0)
+    other = [i for i in range(draws.shape[1]) if i not in nuisance_cols]
+    y = draws[:, other] - draws[:, other].mean(axis=0)
+    coef, *_ = np.linalg.lstsq(z, y, rcond=None)
+    effect[:, other] = z @ coef
+    effect[:, nuisance_cols] = z
+    return effect
+
+
+@dataclass(frozen=True)
+class SamplerCoordinates:
+    """Where the sampler walks when a channel's scale s is a nuisance of a model homogeneous
+    in its amplitudes A (f(c·A) = c·f(A), fitting.budget.amplitude_parameters): the data see
+    only s·A, so in (A, s) the posterior is a curved ridge that ensemble moves cross slowly
+    (R̂ 1.4 after 600 steps on the realistic rig). The sampler takes y = (s·A, s) instead —
+    ln A + ln s for an amplitude sampled as a logarithm, A·s for a linear one — where the
+    likelihood does not depend on s at all and s keeps its prior: the same posterior (the
+    density carries the Jacobian |∂x/∂y| = 1/s per linear amplitude), sampled without a ridge.
+    ``pairs``: (amplitude column, its channel's ln-s column, amplitude sampled as log)."""
+
+    pairs: tuple[tuple[int, int, bool], ...]
+
+    def to_sampler(self, x: np.ndarray) -> np.ndarray:
+        y = np.array(x, dtype=np.float64, copy=True)
+        for a, s, log in self.pairs:
+            y[..., a] = x[..., a] + x[..., s] if log else x[..., a] * np.exp(x[..., s])
+        return y
+
+    def from_sampler(self, y: np.ndarray) -> np.ndarray:
+        x = np.array(y, dtype=np.float64, copy=True)
+        for a, s, log in self.pairs:
+            x[..., a] = y[..., a] - y[..., s] if log else y[..., a] * np.exp(-y[..., s])
+        return x
+
+    def log_jacobian(self, y: np.ndarray) -> np.ndarray:
+        """ln |∂x/∂y| at y (..., D): −ln s for every linear amplitude."""
+        out = np.zeros(np.shape(y)[:-1])
+        for _a, s, log in self.pairs:
+            if not log:
+                out = out - y[..., s]
+        return out
+
+    def wrap(self, log_prob):  # noqa: ANN001, ANN201
+        """ln p_y(y) = ln p_x(x(y)) + ln |∂x/∂y|."""
+
+        def log_prob_y(y: np.ndarray) -> np.ndarray:
+            return log_prob(self.from_sampler(y)) + self.log_jacobian(y)
+
+        return log_prob_y
+
+    def bounds(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A box holding the image of the box [lo, hi] (for placing the first walkers)."""
+        ylo, yhi = lo.copy(), hi.copy()
+        for a, s, log in self.pairs:
+            if log:
+                ylo[a], yhi[a] = lo[a] + lo[s], hi[a] + hi[s]
+            else:
+                ylo[a] = min(lo[a] * math.exp(lo[s]), lo[a] * math.exp(hi[s]))
+                yhi[a] = max(hi[a] * math.exp(lo[s]), hi[a] * math.exp(hi[s]))
+        return ylo, yhi
+
+
+def sampler_coordinates(space, model, x: np.ndarray) -> SamplerCoordinates | None:  # noqa: ANN001
+    """The coordinates for `space` (None: sample θ itself): every amplitude of a channel with
+    a scale nuisance, when the model is homogeneous in its amplitudes at x (checked)."""
+    from fitting.budget import amplitude_parameters
+
+    scale_col = {s.channel: i for i, s in enumerate(space.specs) if s.base == "scale"}
+    if not scale_col:
+        return None
+    nat = space.natural_dict(np.atleast_2d(x))
+    ch0 = space.channels[0]
+    values = {k: float(v[0, 0]) for k, v in space.channel_params(nat, ch0).items()}
+    amps = amplitude_parameters(model, values)
+    pairs = []
+    for i, spec in enumerate(space.specs):
+        if spec.base in amps and spec.channel in scale_col:
+            pairs.append((i, scale_col[spec.channel], bool(spec.log)))
+        elif spec.base in amps and spec.channel is None and len(scale_col) == 1:
+            pairs.append((i, next(iter(scale_col.values())), bool(spec.log)))
+    return SamplerCoordinates(tuple(pairs)) if pairs else None
+
+
+def arm_rows(table) -> dict[str, np.ndarray]:  # noqa: ANN001 (SampleTable)
+    """Per row: the arms' azimuths (``phi_i``, ``phi_o``), the sines of the elevation axes
+    (``sin_light_theta``, ``sin_camera_theta``) and the side of each axis' last move
+    (``side_<axis>``: ±1, 0 unknown), from the metadata ``gonio.arm_poses`` (calibration, per
+    capture) where the table has it and lists the row's capture; else the row's own φ and sin θ
+    and no side (a table from elsewhere: near the normal the row's φ is a poor stand-in)."""
+    import json
+
+    n = len(table.f)
+    out = {
+        "phi_i": np.array(table.phi_i, dtype=np.float64, copy=True),
+        "phi_o": np.array(table.phi_o, dtype=np.float64, copy=True),
+        "sin_light_theta": np.sin(np.asarray(table.theta_i, dtype=np.float64)),
+        "sin_camera_theta": np.sin(np.asarray(table.theta_o, dtype=np.float64)),
+    }
+    for axis in ("light_theta", "camera_theta", "light_phi", "camera_phi"):
+        out["side_" + axis] = np.zeros(n)
+    text = table.metadata.get("gonio.arm_poses")
+    ids = table.extra.get("capture_id")
+    if not text or ids is None:
+        return out
+    try:
+        known = {int(k): v for k, v in json.loads(text).items()}
+    except (ValueError, TypeError, AttributeError):
+        return out
+    ids = np.asarray(ids, dtype=np.int64)
+    for cid in np.unique(ids):
+        pose = known.get(int(cid))
+        if not isinstance(pose, dict):
+            continue
+        rows = ids == cid
+        out["phi_i"][rows], out["phi_o"][rows] = pose["phi"]
+        for axis, angle in pose.get("axis", {}).items():
+            out["sin_" + axis][rows] = math.sin(angle)
+        for axis, side in pose.get("approach", {}).items():
+            if "side_" + axis in out:
+                out["side_" + axis][rows] = side
+    return out
