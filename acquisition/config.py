@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, ValidationError, field_validator, model_validator
 
@@ -323,6 +323,42 @@ class GeometryConfig(Strict):
         "scale it is a shared scale error 2σ/r in the samples' budget",
     )
     camera_distance_m: float = Field(0.5, gt=0, le=10)
+    axis_zero_sigma_deg: (
+        dict[
+            Literal["light_theta", "light_phi", "camera_theta", "camera_phi"],
+            Annotated[float, Field(ge=0, le=5)],
+        ]
+        | None
+    ) = Field(
+        None,
+        description="standard uncertainty (k = 1, degrees) of each arm axis' zero where no "
+        "`gonio calibrate-rig` measured it (mounting: a few 0.1°). The fit carries these "
+        "shared angle errors as nuisance parameters; an arm-offsets file's own σ replaces them",
+    )
+    sample_tilt_sigma_deg: float | None = Field(
+        None,
+        ge=0,
+        le=5,
+        description="standard uncertainty (k = 1, degrees) of the sample's tilt on its holder "
+        "about x and about y, where no `gonio calibrate-rig` measured it (tape or a burr "
+        "under an edge: ~0.1–0.3°); carried by the fit like the axes' zeros",
+    )
+    backlash_deg: float | None = Field(
+        None,
+        ge=0,
+        le=5,
+        description="the gears' play b of every arm axis (datasheet: Dynamixel X-series "
+        "~0.25–0.35°): an arm lags its last move by b/2. The fit carries one play per axis "
+        "with this value ± 50 % as its prior, the side of each pose from the run's moves",
+    )
+    arm_sag_deg: float | None = Field(
+        None,
+        ge=0,
+        le=5,
+        description="how far an elevation arm may sag under its load when horizontal (k = 1, "
+        "degrees; a 0.5 m arm on an XM430: ~0.1–0.3°): true θ = θ + c·sin θ. The fit carries "
+        "c per elevation arm with this σ",
+    )
     min_separation_deg: float = Field(5.0, ge=0, le=90, description="light–camera occlusion")
     max_theta_deg: float = Field(85.0, gt=0, le=90)
 

@@ -102,14 +102,34 @@ class Rig:
     move_together: Callable[[dict[str, float]], None] | None = None
     read_positions: Callable[[], dict[str, float]] | None = None
     recovered: list[str] = field(default_factory=list)  # alerts cleared when the rig was built
+    #: The side each axis last moved toward (+1 / −1; absent before its first move): a gear's
+    #: play leaves the arm lagging that move by half the play, which the fit can carry
+    #: (fitting.nuisance) when it knows the side. Recorded with every capture.
+    approach: dict[str, int] = field(default_factory=dict)
+    _last_target: dict[str, float] = field(default_factory=dict)
 
     def move(self, targets: dict[str, float]) -> None:
         """Start all axes toward their targets at once (sync write when the bus has it)."""
+        self._note_approach(targets)
         if self.move_together is not None:
             self.move_together(targets)
         else:
             for role, angle in targets.items():
                 self.axes[role].move_to(angle)
+
+    def _note_approach(self, targets: dict[str, float]) -> None:
+        """The side of this move per axis: from the last target, or before the first move from
+        where the axis stands (read once; a rig that cannot say leaves the side unknown)."""
+        if not self._last_target:
+            try:
+                self._last_target = dict(self.positions())
+            except Exception:  # informational: never fail a move on it
+                self._last_target = {}
+        for role, target in targets.items():
+            prev = self._last_target.get(role)
+            if prev is not None and abs(target - prev) > 1e-9:
+                self.approach[role] = 1 if target > prev else -1
+            self._last_target[role] = target
 
     def wait(self, timeout_s: float) -> None:
         """Wait for every axis; an axis that fails does not stop the others being waited for

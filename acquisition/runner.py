@@ -269,7 +269,11 @@ def _capture(
             light_dir=pose.wi.tolist(),
             camera_dir=pose.wo.tolist(),
             suffix=frame.suffix,
-            devices={"axes": where["status"], "light": where["light"].__dict__},
+            devices={
+                "axes": where["status"],
+                "light": where["light"].__dict__,
+                "approach": dict(ses.rig.approach),
+            },
             lab_time_s=clock.now() - ses.t0,
         )
     )

@@ -60,6 +60,25 @@ class RunCalibration:
     options: Any
 
 
+def _pointing_margin_m(cal: RunCalibration, cam_pos_m: np.ndarray) -> float:
+    """How far inside the sample's edge a pixel must see to stay on the sample when the camera
+    arm points off by the angle errors the rig file states (its zero, play and sag: the fit
+    carries them, fitting.nuisance, but the footprint moves with them): 2σ of the footprint's
+    shift, r·σ/cos θ_o along the view (a pixel straddling the edge reads up to half of f —
+    25σ low on the realistic rig at θ_o = 60°). 0 when the rig states none."""
+    geo = cal.geometry.kinematics.geometry
+    parts = [
+        (geo.axis_zero_sigma_deg or {}).get("camera_theta"),
+        None if geo.backlash_deg is None else 0.5 * geo.backlash_deg,
+        geo.arm_sag_deg,
+    ]
+    sigma = math.radians(math.hypot(*(p for p in parts if p is not None)) if any(
+        p is not None for p in parts) else 0.0)  # fmt: skip
+    r = float(np.linalg.norm(cam_pos_m))
+    cos_o = max(abs(float(cam_pos_m[2])) / r, 0.2) if r > 0 else 1.0
+    return 2.0 * r * sigma / cos_o
+
+
 @dataclass
 class Plane:
     """One colour channel of a pose at channel resolution, with its per-pixel geometry."""
@@ -199,7 +218,7 @@ def pose_planes(
             size_m,
             step=step,
             offset=offset,
-            margin_m=opts.margin_m,
+            margin_m=max(opts.margin_m, _pointing_margin_m(cal, cam_pos)),
             rotation=rot,
         )
 

@@ -238,6 +238,7 @@ def _reduce_open_run(
     cols: dict[str, list[np.ndarray]] = defaultdict(list)
     skipped: list[dict] = []
     monitors: list[float] = []  # per pose, for the report's drift plot
+    arm_poses: dict[int, dict] = {}  # per capture: the arms' pose (fitting.nuisance)
     iterator = sorted(by_pose.items())
     with Progress("calibrating", len(iterator), enabled=progress, transient=True) as bar:
         for _pose_index, recs in iterator:
@@ -247,6 +248,7 @@ def _reduce_open_run(
                 monitors.append(monitor)
                 try:
                     _reduce_pose(cal, good, decoded, scale.intensity * monitor, cols)
+                    arm_poses[good[0].id] = _arm_pose(cal, good[0])
                 except (PlaneError, CalibrationFrameError) as exc:
                     raise CalibrationError(f"{run_dir}: {exc}") from None
             bar.advance()
@@ -257,7 +259,14 @@ def _reduce_open_run(
         raise CalibrationError(f"{run_dir}: no pixel of any frame falls on the sample")
     _warn_skipped(skipped)
     budget = _budget(rig, scale, RunDocument.of(store).arm_offsets)
-    table = _table(cols, {**_metadata(cal, rig, scale, skipped, monitors), **budget})
+    table = _table(
+        cols,
+        {
+            **_metadata(cal, rig, scale, skipped, monitors),
+            **budget,
+            "gonio.arm_poses": json.dumps(_with_approach(arm_poses)),
+        },
+    )
     if options.texel_mm:
         check_replace(dest, table.metadata)
     write_samples(dest, table)
@@ -306,33 +315,52 @@ def _budget(rig: RigConfig, scale: _Scale, arm_offsets: dict | None) -> dict[str
 
 
 def _arm_components(rig: RigConfig, arm_offsets: dict | None) -> list[dict]:
-    """The arms' shared angle errors: the encoder zeros (measured by `gonio calibrate-rig`, to
-    its σ, or not measured at all) and the play and sag nobody measured. Named, with sizes where
-    known, and marked as not propagated: the fit does not carry angle errors yet."""
+    """The arms' shared angle errors: the encoder zeros and the sample's tilt (measured by
+    `gonio calibrate-rig`, to its σ; else the rig file's estimates
+    ``geometry.axis_zero_sigma_deg`` and ``geometry.sample_tilt_sigma_deg``; else unknown) and the
+    play and sag nobody measured. With sizes, the zeros carry the rig's kinematics preset (how
+    an axis' zero moves θ_o: fitting.nuisance) and the fit marginalises them; the play and sag
+    are named and not propagated (they differ from pose to pose)."""
+    preset = rig.geometry.preset
     if arm_offsets and arm_offsets.get("sigma_deg"):
-        sig = {k: float(v) for k, v in arm_offsets["sigma_deg"].items() if not k.startswith("tilt")}
-        zero = {
-            "component": "arm angles: encoder zeros (gonio calibrate-rig)",
-            "type": "A",
-            "sigma_deg": sig,
-            "size": ", ".join(f"{k} {v:.3g}°" for k, v in sig.items()),
-        }
+        # calibrate-rig's own σ of what it measured (camera zeros, the sample's tilt)
+        sig = {k: float(v) for k, v in arm_offsets["sigma_deg"].items()}
+        zero = {"component": "arm angles: encoder zeros (gonio calibrate-rig)", "type": "A"}
+    elif rig.geometry.axis_zero_sigma_deg or rig.geometry.sample_tilt_sigma_deg:
+        sig = {k: float(v) for k, v in (rig.geometry.axis_zero_sigma_deg or {}).items()}
+        if rig.geometry.sample_tilt_sigma_deg:
+            sig.update(dict.fromkeys(("tilt_x", "tilt_y"), rig.geometry.sample_tilt_sigma_deg))
+        zero = {"component": "arm angles: encoder zeros (rig file estimate)", "type": "B"}
     else:
+        sig = None
         zero = {
             "component": "arm angles: encoder zeros",
             "type": "B",
-            "sigma_deg": None,
-            "size": "not measured (no arm-offsets file): mounting errors of a few 0.1° are usual",
+            "size": "not measured (no arm-offsets file, no geometry.axis_zero_sigma_deg): "
+            "mounting errors of a few 0.1° are usual",
+            "propagated": False,
         }
-    play = {
-        "component": "arm angles: gear backlash and arm sag",
-        "type": "B",
-        "sigma_deg": None,
-        "size": "not assessed (Dynamixel X-series backlash ~0.25° per joint)",
-    }
-    for comp in (zero, play):
-        comp.update(relative_sigma=None, shared_by="every sample of a pose (and of the run)",
+    zero.update(sigma_deg=sig, kinematics=preset)
+    if sig is not None:
+        zero["size"] = ", ".join(f"{k} {v:.3g}°" for k, v in sig.items())
+    geo = rig.geometry
+    play = {"component": "arm angles: gear backlash and arm sag", "type": "B", "sigma_deg": None}
+    if geo.backlash_deg is None and geo.arm_sag_deg is None:
+        play.update(size="not assessed (Dynamixel X-series backlash ~0.25° per joint)",
                     propagated=False)  # fmt: skip
+    else:
+        play.update(
+            play_deg=geo.backlash_deg,
+            sag_sigma_deg=geo.arm_sag_deg,
+            kinematics=preset,
+            size=", ".join(
+                f"{label} {v:.3g}°"
+                for label, v in (("play", geo.backlash_deg), ("sag σ", geo.arm_sag_deg))
+                if v is not None
+            ),
+        )
+    for comp in (zero, play):
+        comp.update(relative_sigma=None, shared_by="every sample of a pose (and of the run)")
     return [zero, play]
 
 
@@ -579,6 +607,48 @@ def _reference_scale(cal: RunCalibration, refs, level) -> ReferenceScale:
         birge=np.array([r[2] for r in res]),
         per_pose=per_pose,
     )
+
+
+def _arm_pose(cal: RunCalibration, rec) -> dict:  # noqa: ANN001 (CaptureRecord)
+    """A pose as the fit's arm-angle nuisances need it (fitting.nuisance): the arms' azimuths
+    [φ light, φ camera] (the plane each elevation turns in, defined on the normal too, where a
+    direction's own φ is not), the elevation axes' angles (sag ∝ their sine) and the commanded
+    axes (for the approach direction, which sets the side of the gears' play)."""
+    pose = cal.geometry.kinematics.pose(cal.geometry.true_axes(rec.axes_measured))
+    return {
+        "phi": [float(pose.phi_i), float(pose.phi_o)],
+        "axis": {k: float(v) for k, v in rec.axes_measured.items() if k.endswith("_theta")},
+        "commanded": {k: float(v) for k, v in rec.axes_commanded.items()},
+        # recorded by the rig at capture time (acquisition.rig.Rig.approach); older runs: None
+        "recorded": (rec.devices or {}).get("approach"),
+    }
+
+
+#: A commanded change smaller than this is no move (the servo keeps the side of its play).
+_MOVE_RAD = math.radians(0.01)
+
+
+def _with_approach(poses: dict[int, dict]) -> dict[str, dict]:
+    """The poses keyed by capture id (as text), each with ``approach`` {axis: +1 | −1 | 0}: the
+    side of the last move of that axis before the capture (a gear's play leaves the arm lagging
+    it by half the play) — as the rig recorded it, or for older runs inferred from the
+    commanded targets in capture order (0 before the first change: unknown)."""
+    last: dict[str, float] = {}
+    side: dict[str, int] = {}
+    out = {}
+    for cid in sorted(poses):
+        pose = dict(poses[cid])
+        commanded, recorded = pose.pop("commanded"), pose.pop("recorded")
+        for axis, target in commanded.items():
+            if axis in last and abs(target - last[axis]) > _MOVE_RAD:
+                side[axis] = 1 if target > last[axis] else -1
+            last[axis] = target
+        if isinstance(recorded, dict):  # the rig's own record: every move, the first too
+            pose["approach"] = {axis: int(recorded.get(axis, 0)) for axis in commanded}
+        else:
+            pose["approach"] = {axis: side.get(axis, 0) for axis in commanded}
+        out[str(cid)] = pose
+    return out
 
 
 def _reduce_pose(cal: RunCalibration, recs, decoded, intensity, cols) -> None:
