@@ -417,6 +417,9 @@ def _budget_components(rig: RigConfig, scale: _Scale, arm_offsets: dict | None) 
                 "size": f"{100 * rel:.3g} % (σ_r {1e3 * rig.geometry.light_distance_sigma_m:.3g}"
                 f" mm at r = {rig.geometry.light_distance_m:g} m)",
                 "shared_by": "every sample of the run (all channels alike)",
+                # for a fit that carries the distance itself (fitting.nuisance: the lamp's
+                # direction and 1/r² per pixel move with it, not only the scale)
+                "light_distance_sigma_m": rig.geometry.light_distance_sigma_m,
             }
         )
     le = rig.camera.linearity_error
@@ -615,8 +618,11 @@ def _arm_pose(cal: RunCalibration, rec) -> dict:  # noqa: ANN001 (CaptureRecord)
     direction's own φ is not), the elevation axes' angles (sag ∝ their sine) and the commanded
     axes (for the approach direction, which sets the side of the gears' play)."""
     pose = cal.geometry.kinematics.pose(cal.geometry.true_axes(rec.axes_measured))
+    cam_m, light_m, _rot = cal.geometry.positions(rec.axes_measured)
     return {
         "phi": [float(pose.phi_i), float(pose.phi_o)],
+        "light_m": [float(v) for v in light_m],
+        "camera_m": [float(v) for v in cam_m],
         "axis": {k: float(v) for k, v in rec.axes_measured.items() if k.endswith("_theta")},
         "commanded": {k: float(v) for k, v in rec.axes_commanded.items()},
         # recorded by the rig at capture time (acquisition.rig.Rig.approach); older runs: None

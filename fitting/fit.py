@@ -46,6 +46,7 @@ from fitting.mcmc import (
 from fitting.mismatch import regional_discrepancy, sandwich_adjust
 from fitting.moves import SAMPLER_REVISION
 from fitting.nuisance import (
+    arm_rows,
     carried_words,
     nuisance_effect,
     sampler_coordinates,
@@ -202,7 +203,9 @@ def _setup(table: SampleTable, opt: FitOptions):
         discrepancy=opt.discrepancy,
     )
     shared = (
-        shared_errors(read_budget(table.metadata), channels)
+        shared_errors(
+            read_budget(table.metadata), channels, positions="light_pos" in arm_rows(table)
+        )
         if opt.shared_errors and opt.mcmc
         else None
     )

@@ -47,7 +47,7 @@ import numpy as np
 from scipy.special import gammaln, log_ndtr
 
 from fitting.kernels import gauss_discrepancy_sum
-from fitting.nuisance import ANGLE_NUISANCES, arm_deltas, arm_rows, shifted_directions
+from fitting.nuisance import ANGLE_NUISANCES, arm_deltas, arm_rows, measured_geometry, to_si
 from fitting.priors import ParameterSpace
 from fitting.samples import Flags, SampleTable
 
@@ -107,14 +107,6 @@ class ChannelData:
     @cached_property
     def sigma2(self) -> np.ndarray:
         return np.ascontiguousarray(self.sigma**2)
-
-
-def _irradiance_ratio(d: ChannelData, wi_true: np.ndarray) -> np.ndarray:
-    """cos θ_i(true) / cos θ_i(recorded): calibration divided each sample's radiance by the
-    irradiance I cos θ_i / r² of the recorded light direction, so where the light arm's zero is
-    off the measured f is the BRDF at the true directions times this ratio (first order
-    −tan θ_i · δ: 1 % at θ_i = 50°, δ = 0.5°)."""
-    return wi_true[..., 2] / d.wi[:, 2]
 
 
 class Likelihood:
@@ -224,7 +216,7 @@ class Likelihood:
         """Model values per channel, each (W, N_c), for θ (W, D) in the sampled space."""
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
         natural = self.space.natural_dict(theta)
-        angles = {n: np.radians(natural[n]) for n in ANGLE_NUISANCES if n in natural}
+        angles = {n: to_si(n, natural[n]) for n in ANGLE_NUISANCES if n in natural}
         out = []
         for i, d in enumerate(self.data):
             params = self.space.channel_params(natural, d.channel)
@@ -254,7 +246,7 @@ class Likelihood:
             return
         x0 = np.atleast_2d(np.asarray(theta, dtype=np.float64))
         natural = self.space.natural_dict(x0)
-        angles = {n: np.radians(natural[n]) for n in ANGLE_NUISANCES if n in natural}
+        angles = {n: to_si(n, natural[n]) for n in ANGLE_NUISANCES if n in natural}
         if not angles:
             self._angle_ref = None
             return
@@ -264,20 +256,19 @@ class Likelihood:
         for d in self.data:
             p0 = self.space.channel_params(natural, d.channel)
             delta0 = {a: v[0] for a, v in arm_deltas(d.arm, angles).items()}  # (N,) per arm
-            phi_i, phi_o = d.arm["phi_i"], d.arm["phi_o"]
-            wi0, wo0 = shifted_directions(d.wi, d.wo, phi_i, phi_o, delta0, kin)
             with np.errstate(all="ignore"):
-                ratio0 = _irradiance_ratio(d, wi0)
+                wi0, wo0, ratio0 = measured_geometry(d.wi, d.wo, d.arm, delta0, kin)
                 f0 = np.asarray(self.model.evaluate(p0, wi0, wo0), float).reshape(-1) * ratio0
                 grads = {}
                 for arm in delta0:
                     fs = []
+                    step = 1e-5 if arm == "light_r" else h  # 10 µm for the lamp's distance
                     for sign in (1.0, -1.0):
-                        dd = dict(delta0, **{arm: delta0[arm] + sign * h})
-                        wi, wo = shifted_directions(d.wi, d.wo, phi_i, phi_o, dd, kin)
+                        dd = dict(delta0, **{arm: delta0[arm] + sign * step})
+                        wi, wo, ratio = measured_geometry(d.wi, d.wo, d.arm, dd, kin)
                         f = np.asarray(self.model.evaluate(p0, wi, wo), float).reshape(-1)
-                        fs.append(f * _irradiance_ratio(d, wi))
-                    g = (fs[0] - fs[1]) / (2 * h) / f0
+                        fs.append(f * ratio)
+                    g = (fs[0] - fs[1]) / (2 * step) / f0
                     grads[arm] = np.where(np.isfinite(g), g, 0.0)
             ref.append((wi0, wo0, ratio0, grads, delta0))
         self._angle_ref = ref
@@ -295,13 +286,13 @@ class Likelihood:
         kernel call over the W·N direction pairs, each row with its walker's parameters."""
         kin = getattr(self.space.shared_errors, "kinematics", "two-arm")
         n_walkers = next(iter(shifts.values())).shape[0]
-        wi, wo = shifted_directions(d.wi, d.wo, d.arm["phi_i"], d.arm["phi_o"], shifts, kin)
+        wi, wo, ratio = measured_geometry(d.wi, d.wo, d.arm, shifts, kin)
         n = d.f.size
         wi = np.broadcast_to(wi, (n_walkers, n, 3)).reshape(-1, 3)
         wo = np.broadcast_to(wo, (n_walkers, n, 3)).reshape(-1, 3)
         rows = {k: np.broadcast_to(v, (n_walkers, n)).reshape(-1) for k, v in params.items()}
         f = np.asarray(self.model.evaluate(rows, wi, wo), dtype=np.float64).reshape(n_walkers, n)
-        return f * _irradiance_ratio(d, wi.reshape(n_walkers, n, 3))
+        return f * np.broadcast_to(ratio, (n_walkers, n))
 
     def log_likelihood(self, theta: np.ndarray) -> np.ndarray:
         """ln L for θ (W, D) → (W,), without the prior. −∞ where the model is not finite."""

@@ -58,6 +58,8 @@ __all__ = [
     "SamplerCoordinates",
     "sampler_coordinates",
     "arm_rows",
+    "measured_geometry",
+    "to_si",
     "arm_deltas",
     "ARMS",
 ]
@@ -68,7 +70,7 @@ PRIOR_BOX_SIGMA = 6.0
 
 #: The arm angles a nuisance moves (radians, true − recorded): the two elevations, the camera's
 #: azimuth relative to the light's, and the sample's tilt about x and y.
-ARMS = ("light_theta", "camera_theta", "camera_phi", "tilt_x", "tilt_y")
+ARMS = ("light_theta", "camera_theta", "camera_phi", "tilt_x", "tilt_y", "light_r")
 #: Angle nuisances: fitted name → (the arm angle it moves, how): "zero" by itself, "sag" times
 #: the sine of the arm's elevation, "play" by −½ the side of the axis' last move (the arm lags
 #: it), "play_light_phi" by +½ the side of the light's azimuth axis (its lag turns the light,
@@ -85,7 +87,17 @@ ANGLE_TERMS = {
     "camera_theta_play": ("camera_theta", "play"),
     "light_phi_play": ("camera_phi", "play_light_phi"),
     "camera_phi_play": ("camera_phi", "play"),
+    "light_distance_mm": ("light_r", "zero"),
 }
+#: Units of a nuisance other than degrees, as their SI factor (the arm "light_r" is metres).
+_SI = {"light_distance_mm": 1e-3}
+
+
+def to_si(name: str, value):  # noqa: ANN001, ANN201
+    """A nuisance's value in SI (radians for angles, metres for the lamp's distance)."""
+    return np.asarray(value, dtype=np.float64) * _SI[name] if name in _SI else np.radians(value)
+
+
 ANGLE_NUISANCES = tuple(ANGLE_TERMS)
 #: Budget keys (sigma_deg) of the zeros → the nuisance, combined in quadrature.
 _ZERO_KEYS = {
@@ -114,11 +126,25 @@ class SharedErrors:
         return bool(self.scale_sigma or self.angle_sigma_deg)
 
 
-def shared_errors(budget: list[dict] | None, channels: list[str]) -> SharedErrors | None:
+def shared_errors(
+    budget: list[dict] | None, channels: list[str], *, positions: bool = False
+) -> SharedErrors | None:
     """The shared errors of `budget` the fit can carry for `channels`; None when it states
-    none with a size."""
+    none with a size. With the arms' `positions` per capture (gonio.arm_poses), the lamp's
+    distance is carried as itself (its direction and 1/r² per pixel) instead of as a scale."""
+    angles: dict[str, float] = {}
+    distance = [
+        c
+        for c in budget or []
+        if positions
+        and c.get("light_distance_sigma_m")
+        and isinstance(c.get("relative_sigma"), dict)
+    ]
+    if distance:
+        angles["light_distance_mm"] = 1e3 * float(distance[0]["light_distance_sigma_m"])
+        budget = [c for c in budget or [] if c is not distance[0]]
     scales = {}
-    carried = []
+    carried = [str(distance[0]["component"])] if distance else []
     for ch in channels:
         sig = scale_sigma(budget, ch)
         if sig is not None and sig > 0:
@@ -130,7 +156,6 @@ def shared_errors(budget: list[dict] | None, channels: list[str]) -> SharedError
             if str(c.get("component", "")).startswith("scale")
             and isinstance(c.get("relative_sigma"), dict)
         ]
-    angles: dict[str, float] = {}
     centers: dict[str, float] = {}
     kinematics = "two-arm"
     for comp in budget or []:
@@ -212,6 +237,31 @@ def shifted_directions(
     return wi, wo
 
 
+def measured_geometry(
+    wi: np.ndarray, wo: np.ndarray, rows: dict, delta: dict, kinematics: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ω_i, ω_o, irradiance ratio) of the samples in the world the nuisances describe: the
+    lamp `delta["light_r"]` metres further along its arm (each pixel's surface point p, from
+    the camera's position and the recorded ω_o, then sees it at L' − p), then the arms turned
+    (:func:`shifted_directions`). The ratio is what calibration's irradiance I cos θ_i / r² of
+    the recorded geometry misses: cos θ_i' / cos θ_i · |L − p|² / |L' − p|²; the measured f is
+    the BRDF at (ω_i', ω_o') times it."""
+    ratio = 1.0
+    wi_new = wi
+    d_r = delta.get("light_r")
+    if d_r is not None and "light_pos" in rows:
+        light, cam = rows["light_pos"], rows["cam_pos"]
+        p = cam - (cam[:, 2] / wo[:, 2])[:, None] * wo  # the pixel's point on z = 0
+        r = np.linalg.norm(light, axis=1)
+        light_new = light * (1.0 + np.asarray(d_r, dtype=np.float64) / r)[..., None]
+        to_new, to_old = light_new - p, light - p
+        r2_new, r2_old = np.sum(to_new**2, axis=-1), np.sum(to_old**2, axis=-1)
+        wi_new = to_new / np.sqrt(r2_new)[..., None]
+        ratio = r2_old / r2_new
+    wi2, wo2 = shifted_directions(wi_new, wo, rows["phi_i"], rows["phi_o"], delta, kinematics)
+    return wi2, wo2, ratio * wi2[..., 2] / wi[:, 2]
+
+
 def arm_deltas(rows: dict[str, np.ndarray], natural_rad: dict[str, np.ndarray]) -> dict:
     """{arm: (W, N) radians} from the angle nuisances' values {name: (W,) radians} and the rows'
     arm data (:func:`arm_rows`)."""
@@ -291,9 +341,10 @@ def carried_words(shared: SharedErrors, names: list[str], natural_draws: np.ndar
         else:
             prior = shared.angle_sigma_deg[name]
             centre = shared.angle_center_deg.get(name, 0.0)
+            unit = " mm" if name in _SI else "°"
             parts.append(
-                f"{name} {np.median(col):+.3f} ± {np.std(col):.3f}° "
-                f"(prior {centre:+.3g} ± {prior:.3g}°)"
+                f"{name} {np.median(col):+.3f} ± {np.std(col):.3f}{unit} "
+                f"(prior {centre:+.3g} ± {prior:.3g}{unit})"
             )
     return "shared errors marginalised as nuisance parameters (in every interval): " + "; ".join(
         parts
@@ -323,7 +374,8 @@ def with_nuisances(space, shared: SharedErrors):  # noqa: ANN001, ANN201 (Parame
     ]
     for name, sig in shared.angle_sigma_deg.items():
         c = shared.angle_center_deg.get(name, 0.0)
-        extra.append(ParameterSpec(name, name, None, "deg", c - k * sig, c + k * sig, False,
+        unit = "mm" if name in _SI else "deg"
+        extra.append(ParameterSpec(name, name, None, unit, c - k * sig, c + k * sig, False,
                                    prior_sigma=sig, prior_center=c))  # fmt: skip
     return dataclasses.replace(space, specs=space.specs + tuple(extra), shared_errors=shared)
 
@@ -437,6 +489,7 @@ def arm_rows(table) -> dict[str, np.ndarray]:  # noqa: ANN001 (SampleTable)
     }
     for axis in ("light_theta", "camera_theta", "light_phi", "camera_phi"):
         out["side_" + axis] = np.zeros(n)
+    light_pos, cam_pos = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
     text = table.metadata.get("gonio.arm_poses")
     ids = table.extra.get("capture_id")
     if not text or ids is None:
@@ -457,4 +510,8 @@ def arm_rows(table) -> dict[str, np.ndarray]:  # noqa: ANN001 (SampleTable)
         for axis, side in pose.get("approach", {}).items():
             if "side_" + axis in out:
                 out["side_" + axis][rows] = side
+        if "light_m" in pose and "camera_m" in pose:
+            light_pos[rows], cam_pos[rows] = pose["light_m"], pose["camera_m"]
+    if np.all(np.isfinite(light_pos)) and np.all(np.isfinite(cam_pos)):
+        out["light_pos"], out["cam_pos"] = light_pos, cam_pos
     return out

@@ -2,10 +2,11 @@
 sensor noise *and* a fresh draw of the instrument's shared errors from the distributions its
 rig file states — the lamp's certificate (1.5 %), the lamp's distance (3 mm), the arms'
 encoder zeros (0.2° each), the sample's tilt (0.2° about x and y), the gears' play (0.3° ± 50 %
-per axis) and the arms' sag (0.15°) — on `configs/scenes/realistic.toml` (whose other errors —
-a 5 mm lamp, stray light, the camera's non-linearity, the flat source's fall-off, lamp drift —
-stay at that file's sizes). A real rig has one such error for its life;
-coverage is a statement about rigs, so every repeat is another rig.
+per axis) and the arms' sag (0.15°) — on `configs/scenes/realistic.toml`. Its 5 mm lamp and
+its drift stay; the camera's non-linearity, the flat source's fall-off and stray light, which
+no budget component sizes yet, are off; darks and a flat field are recorded, as a lab run
+would. A real rig has one such error for its life; coverage is a statement about rigs, so
+every repeat is another rig.
 
 The fit carries the shared errors as nuisance parameters (fitting.nuisance): its 68 % interval
 must hold the truth in 55–80 % of repeats and its 95 % interval in ≥ 88 %, for kd, ks and m.
@@ -13,11 +14,13 @@ The twin fits the same samples the old way — the scale's σ added to every sam
 quadrature, the angles not carried — and its 95 % coverage of kd must fall below 80 %: the
 shared error averaged away as if it were independent (so this test can fail).
 
-Not yet met, and so not asserted (the test prints it): m's coverage. Its intervals are
-≈ ±0.15 % and some rigs' m lands 0.25–0.35 % off with χ²/dof ≈ 1.0 — measured 0.43–0.53 (68 %)
-and 0.77–0.87 (95 %) over these 30 rigs; longer chains (R̂ 1.05) leave it so. Something the
-angle nuisances mistake for an angle error moves m: a lamp 8 mm further than believed, alone,
-makes the fit invent −0.3° on the light's zero and moves m +0.3 %. Issue 17 stays open for it.
+Not yet met: m's 68 % interval is too wide — it holds the truth in 0.87 of these rigs (the
+band's top is 0.80; its 95 % interval: 1.00), so that one bound is not asserted. The chains
+(600 steps, 17 parameters with the nuisances) end at R̂ 1.1–1.2, and a chain not yet mixed is
+wider than the posterior; 2000 steps bring R̂ to 1.05 but cost 3× the time. Before the lamp's
+distance was carried as itself (its direction and 1/r² per pixel, not only as a scale), m was
+biased instead (+0.3 % for a lamp 8 mm further than believed; 68 %: 0.53). Issue 17 stays open
+for it.
 
 Each repeat runs in a fresh interpreter (spawn, as tests/test_coverage_sim.py, which says why).
 """
@@ -200,11 +203,12 @@ def test_coverage_on_realistic_rigs_and_the_quadrature_twin_fails() -> None:
     for label, by_name in cover.items():
         for name, (c68, c95) in by_name.items():
             print(f"{label}: {name} 68 % covers {c68:.2f}, 95 % covers {c95:.2f} of {REPEATS}")
-    for name in ("kd_G", "ks_G"):  # m: not yet (module docstring)
-        c68, c95 = cover["nuisance"][name]
+    for name, (c68, c95) in cover["nuisance"].items():
         # The issue's bands: nominal 0.68 and 0.95, less about two binomial sd at 30 repeats.
-        assert 0.55 <= c68 <= 0.80, (name, c68)
+        assert c68 >= 0.55, (name, c68)
         assert c95 >= 0.88, (name, c95)
+        if name != "m":  # m's intervals are too wide yet (module docstring): 0.87 at 68 %
+            assert c68 <= 0.80, (name, c68)
     # The old treatment: the 1.9 % scale σ shrunk by √N into kd's interval (σ_kd ≈ 0.1 %),
     # so a 95 % interval holds the truth only when the rig's scale error is ≲ 0.1 %: rarely.
     assert cover["quadrature"]["kd_G"][1] < 0.80, cover["quadrature"]["kd_G"]
