@@ -143,7 +143,8 @@ def slice_plot(samples, fits: list[dict]) -> str:
                 alpha=0.6,
                 label=f"θi≈{lev:.0f}°",
             )
-            model = model_of(fits[0]) if fits else None
+            # the fit's curve where the fit holds this channel (a fit of G alone has no kd_R)
+            model = model_of(fits[0]) if fits and ch in fits[0].get("channels", ()) else None
             if model is not None:
                 fit = fits[0]
                 ti = np.radians(np.mean(np.degrees(good.theta_i[m])))
