@@ -46,7 +46,7 @@ from fitting.mcmc import (
 from fitting.mismatch import regional_discrepancy, sandwich_adjust
 from fitting.moves import SAMPLER_REVISION
 from fitting.nuisance import (
-    arm_rows,
+    arm_positions_known,
     carried_words,
     nuisance_effect,
     sampler_coordinates,
@@ -204,7 +204,7 @@ def _setup(table: SampleTable, opt: FitOptions):
     )
     shared = (
         shared_errors(
-            read_budget(table.metadata), channels, positions="light_pos" in arm_rows(table)
+            read_budget(table.metadata), channels, positions=arm_positions_known(table.metadata)
         )
         if opt.shared_errors and opt.mcmc
         else None

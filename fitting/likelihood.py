@@ -158,7 +158,9 @@ class Likelihood:
         with np.errstate(invalid="ignore"):
             f_all = np.where(dark, np.maximum(f_all, float(dark_snr) * table.sigma), f_all)
         counts = table.extra.get("n_rows")
-        arm = arm_rows(table)
+        # the arms' pose per row only for a fit that carries their angles (fitting.nuisance)
+        shared = space.shared_errors
+        arm = arm_rows(table) if shared is not None and shared.angle_sigma_deg else None
         captures = table.extra.get("capture_id")
         for ch in channels:
             sel = usable & (table.channel == ch)
@@ -179,7 +181,9 @@ class Likelihood:
                     np.asarray(table.theta_o[sel], dtype=np.float64),
                     kind_arr,
                     weight,
-                    {k: np.ascontiguousarray(v[sel]) for k, v in arm.items()},
+                    None
+                    if arm is None
+                    else {k: np.ascontiguousarray(v[sel]) for k, v in arm.items()},
                     None if captures is None else np.asarray(captures[sel], dtype=np.int64),
                 )
             )

@@ -58,6 +58,7 @@ __all__ = [
     "SamplerCoordinates",
     "sampler_coordinates",
     "arm_rows",
+    "arm_positions_known",
     "measured_geometry",
     "to_si",
     "arm_deltas",
@@ -472,6 +473,20 @@ def sampler_coordinates(space, model, x: np.ndarray) -> SamplerCoordinates | Non
     return SamplerCoordinates(tuple(pairs)) if pairs else None
 
 
+def arm_positions_known(metadata: dict) -> bool:
+    """Whether calibration recorded the arms' positions for every capture it lists
+    (``gonio.arm_poses``): then the lamp's distance can be carried as itself."""
+    import json
+
+    try:
+        poses = json.loads(metadata.get("gonio.arm_poses") or "{}")
+    except (ValueError, TypeError):
+        return False
+    return bool(poses) and all(
+        isinstance(p, dict) and "light_m" in p and "camera_m" in p for p in poses.values()
+    )
+
+
 def arm_rows(table) -> dict[str, np.ndarray]:  # noqa: ANN001 (SampleTable)
     """Per row: the arms' azimuths (``phi_i``, ``phi_o``), the sines of the elevation axes
     (``sin_light_theta``, ``sin_camera_theta``) and the side of each axis' last move
@@ -489,7 +504,6 @@ def arm_rows(table) -> dict[str, np.ndarray]:  # noqa: ANN001 (SampleTable)
     }
     for axis in ("light_theta", "camera_theta", "light_phi", "camera_phi"):
         out["side_" + axis] = np.zeros(n)
-    light_pos, cam_pos = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
     text = table.metadata.get("gonio.arm_poses")
     ids = table.extra.get("capture_id")
     if not text or ids is None:
@@ -498,20 +512,28 @@ def arm_rows(table) -> dict[str, np.ndarray]:  # noqa: ANN001 (SampleTable)
         known = {int(k): v for k, v in json.loads(text).items()}
     except (ValueError, TypeError, AttributeError):
         return out
-    ids = np.asarray(ids, dtype=np.int64)
-    for cid in np.unique(ids):
+    # One pass per capture over the capture list, then one gather per column: a run's rows
+    # are millions, its captures thousands.
+    caps, inverse = np.unique(np.asarray(ids, dtype=np.int64), return_inverse=True)
+    per = {k: np.full(caps.size, np.nan) for k in out}
+    per_light, per_cam = np.full((caps.size, 3), np.nan), np.full((caps.size, 3), np.nan)
+    for j, cid in enumerate(caps):
         pose = known.get(int(cid))
         if not isinstance(pose, dict):
             continue
-        rows = ids == cid
-        out["phi_i"][rows], out["phi_o"][rows] = pose["phi"]
+        per["phi_i"][j], per["phi_o"][j] = pose["phi"]
         for axis, angle in pose.get("axis", {}).items():
-            out["sin_" + axis][rows] = math.sin(angle)
+            per["sin_" + axis][j] = math.sin(angle)
         for axis, side in pose.get("approach", {}).items():
-            if "side_" + axis in out:
-                out["side_" + axis][rows] = side
+            if "side_" + axis in per:
+                per["side_" + axis][j] = side
         if "light_m" in pose and "camera_m" in pose:
-            light_pos[rows], cam_pos[rows] = pose["light_m"], pose["camera_m"]
+            per_light[j], per_cam[j] = pose["light_m"], pose["camera_m"]
+    for k, col in per.items():
+        value = col[inverse]
+        keep = np.isfinite(value)
+        out[k][keep] = value[keep]
+    light_pos, cam_pos = per_light[inverse], per_cam[inverse]
     if np.all(np.isfinite(light_pos)) and np.all(np.isfinite(cam_pos)):
         out["light_pos"], out["cam_pos"] = light_pos, cam_pos
     return out
