@@ -23,8 +23,11 @@ __all__ = [
     "truth_bsdf",
     "effects_description",
     "planned_spp",
+    "effect_names",
     "blend_scene",
     "preview_png",
+    "instrument_budget",
+    "latin_hypercube_normal",
 ]
 
 
@@ -146,6 +149,14 @@ def effects_description(scene: Any) -> str:
     return plan_effects(scene).describe()
 
 
+def effect_names(scene: Any) -> list[str]:
+    """The simulation stages the scene runs (render effects, then sensor stages), by name."""
+    from simulator.planner import plan_effects
+
+    plan = plan_effects(scene)
+    return [*plan.render_effects, *plan.sensor_stages]
+
+
 def planned_spp(scene: Any) -> int:
     from simulator.planner import planned_spp as _spp
 
@@ -181,3 +192,17 @@ def preview_png(fit: Any, **kwargs: Any) -> bytes:
     from simulator.preview import preview_png as _png
 
     return _png(fit, **kwargs)
+
+
+def instrument_budget(**sizes: Any) -> Any:
+    """A typical lab rig's shared-error budget (simulator.instrument_draws.InstrumentBudget):
+    the rig file stating it, and worlds drawn from it."""
+    from simulator.instrument_draws import InstrumentBudget
+
+    return InstrumentBudget(**sizes)
+
+
+def latin_hypercube_normal(n: int, dims: int, seed: int) -> Any:
+    from simulator.instrument_draws import latin_hypercube_normal as _lhs
+
+    return _lhs(n, dims, seed)

@@ -33,7 +33,6 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
-from scipy.special import ndtri
 
 from acquisition.config import (
     CalibrationPhasesConfig,
@@ -47,6 +46,7 @@ from calibration.reduce import ReduceOptions, reduce_run
 from fitting.budget import read_budget, scale_sigma
 from fitting.fit import FitOptions, fit_samples
 from gonio.pipeline import AcquireSpec, acquire
+from simulator.instrument_draws import InstrumentBudget, latin_hypercube_normal
 from simulator.scene import load_scene
 from simulator.truth import reference_parameters
 
@@ -66,13 +66,10 @@ PLAN = PlanConfig(
         dark=DarkPhaseConfig(count=8), flat=FlatPhaseConfig(count=16)
     ),
 )
-#: What the rig file states (k = 1) and each repeat's world draws from.
-CERT_SIGMA = 0.015  # the lamp certificate's relative σ (NIST SP 250-89: 1–2 % at k = 2)
-DISTANCE_SIGMA_M = 0.003  # a tape to a filament
-ZERO_SIGMA_DEG = {"light_theta": 0.2, "camera_theta": 0.2, "camera_phi": 0.2}
-TILT_SIGMA_DEG = 0.2  # the sample on its holder: tape or a burr under an edge
-PLAY_DEG = 0.3  # the gears' play, every axis (XM430-W350: 0.25°, plus horn and arm), ± 50 %
-SAG_SIGMA_DEG = 0.15  # a 0.5 m arm's sag when horizontal
+#: What the rig file states (k = 1) and each repeat's world draws from: the lamp's certificate
+#: 1.5 %, its distance 3 mm, the three encoder zeros 0.2°, the tilts 0.2°, play 0.3° ± 50 %, sag
+#: 0.15° (simulator.instrument_draws.InstrumentBudget says where each size comes from).
+BUDGET = InstrumentBudget()
 FIT = dict(
     model="torrance-sparrow",
     model_options={"fresnel": "none", "shadowing": "smith-rational"},
@@ -83,77 +80,14 @@ FIT = dict(
 )
 
 
-def _rig_draws() -> np.ndarray:
-    """(REPEATS, 13) standard-normal draws of the rigs' errors (certificate, distance, three
-    zeros, two tilts, four plays, two sags), a Latin hypercube: each error's draws fall one in
-    each 1/REPEATS band of its distribution, in random order. Plain draws would make the
-    coverage measure how lucky 30 rigs were as much as the intervals (of 30 plain draws, the
-    share of rigs with a scale error inside ±1σ is 0.68 ± 0.085); stratified, each band is
-    represented once and the coverage estimate stays unbiased (McKay, Beckman & Conover
-    1979)."""
-    rng = np.random.default_rng(17)
-    u = np.stack(
-        [(rng.permutation(REPEATS) + rng.uniform(size=REPEATS)) / REPEATS for _ in range(13)],
-        axis=1,
-    )
-    return ndtri(u)
-
-
 def _world_and_rig(k: int):
-    """Repeat k's world (realistic.toml with fresh shared errors and noise) and the rig file
-    that states their distributions (configs/rigs/sim.toml plus the three σ)."""
+    """Repeat k's world (realistic.toml with a fresh draw of the shared errors, and fresh noise)
+    and the rig file that states their distributions (configs/rigs/sim.toml plus the budget).
+    The draws are a Latin hypercube over the repeats (InstrumentBudget: why)."""
     base = load_scene(REPO / "configs" / "scenes" / "realistic.toml")
-    rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
-    z = _rig_draws()[k]
-    cert = 1.0 + CERT_SIGMA * z[0]
-    light = base.light.model_copy(update={"intensity_W_sr": (cert, cert, cert)})
-    geometry = base.geometry.model_copy(
-        update={
-            "light_distance_error_m": DISTANCE_SIGMA_M * z[1],
-            "axis_zero_error_deg": {
-                a: s * zk for (a, s), zk in zip(ZERO_SIGMA_DEG.items(), z[2:5], strict=True)
-            },
-            "sample_tilt_deg": {"x": TILT_SIGMA_DEG * z[5], "y": TILT_SIGMA_DEG * z[6]},
-            "backlash_deg": {
-                a: max(0.0, PLAY_DEG * (1 + 0.5 * zk))
-                for a, zk in zip(
-                    ("light_theta", "camera_theta", "light_phi", "camera_phi"), z[7:11], strict=True
-                )
-            },
-            "compliance_deg": {
-                "light_theta": SAG_SIGMA_DEG * z[11],
-                "camera_theta": SAG_SIGMA_DEG * z[12],
-            },
-        }
-    )
-    # Errors no budget component sizes stay out (see the module docstring): the camera's
-    # non-linearity (named in the budget, not carried), the flat source's fall-off, stray light.
-    sensor = base.sensor.model_copy(update={"nonlinearity": 0.0})
-    scene = base.model_copy(
-        update={
-            "light": light,
-            "geometry": geometry,
-            "sensor": sensor,
-            "flat_source_falloff": 0.0,
-            "stray_light": None,
-            "seed": 3000 + k,
-        }
-    )
-    rig = rig.model_copy(
-        update={
-            "light": rig.light.model_copy(update={"intensity_rel_sigma": CERT_SIGMA}),
-            "geometry": rig.geometry.model_copy(
-                update={
-                    "light_distance_sigma_m": DISTANCE_SIGMA_M,
-                    "axis_zero_sigma_deg": dict(ZERO_SIGMA_DEG),
-                    "sample_tilt_sigma_deg": TILT_SIGMA_DEG,
-                    "backlash_deg": PLAY_DEG,
-                    "arm_sag_deg": SAG_SIGMA_DEG,
-                }
-            ),
-        }
-    )
-    return base, scene, rig
+    z = latin_hypercube_normal(REPEATS, InstrumentBudget.N_DRAWS, seed=17)[k]
+    scene = BUDGET.world(base, z, seed=3000 + k)
+    return base, scene, BUDGET.rig(load_rig(REPO / "configs" / "rigs" / "sim.toml"))
 
 
 def _quadrature(table):
