@@ -81,6 +81,8 @@ STAGE_NS_PER_PIXEL = {
 # within noise are stored as 0.
 EFFECT_MS_64 = {
     "light_spot": (0.20, 0.006),
+    "beam_profile": (0.20, 0.006),  # a projector's texture lookup: as a spot's falloff
+    "sample_bow": (0.20, 0.006),  # a normal-map lookup per shading point: likewise
     "light_area": (0.68, 0.179),
     "holder": (0.35, 0.0),
     "stray_light": (0.54, 0.0),
@@ -130,6 +132,10 @@ def _square_at_least(x: float) -> int:
 def render_effects(scene: Scene) -> list[str]:
     """Render-side effects the scene enables (names used in costs and Renderer.effect_counts)."""
     out = [f"light_{scene.light.type}"] if scene.light.type != "point" else []
+    if scene.light.beam_falloff:
+        out.append("beam_profile")
+    if scene.geometry.sample_bow_m:
+        out.append("sample_bow")
     if scene.holder is not None:
         out.append("holder")
     if scene.stray_light is not None:

@@ -30,6 +30,7 @@ has columns (left, up, forward); the OpenCV frame is (−left, −up, forward): 
 
 from __future__ import annotations
 
+import math
 import re
 from collections import Counter
 from dataclasses import dataclass
@@ -116,6 +117,50 @@ def holder_walls(scene: Scene) -> list[tuple[tuple[float, float, float], tuple[f
         out.append(((s * (w + t / 2), 0.0, z), (t / 2, w + t, z)))
         out.append(((0.0, s * (w + t / 2), z), (w, t / 2, z)))
     return out
+
+
+#: The beam texture's half field of view: the sample, board and reference target (≤ 50 mm at
+#: ≥ 0.1 m from the lamp) lie well inside it; outside it the projector gives no light.
+BEAM_HALF_FOV_DEG = 30.0
+#: Texels per side: 0.12° each, so bilinear interpolation of the smooth profile errs by
+#: ~Δ² I''/8 < 1e-5 of I₀ for falloffs of a few % over a few degrees.
+BEAM_TEXELS = 512
+
+
+def beam_texture(light) -> np.ndarray:
+    """The `projector` texture that makes a pinhole lamp of radiant intensity
+    I(ψ) = I₀ · light.beam_profile(ψ). Mitsuba's projector (src/emitters/projector.cpp) returns
+    π · T(uv) / (z² cos ψ) for a point at local depth z, i.e. an intensity π T / cos³ψ (its
+    constant texture lights a plane at z = 1 evenly), so T = I(ψ) cos³ψ / π. Texel centres map
+    to tan ψ_x,y = (2u − 1) tan(fov/2)."""
+    n = BEAM_TEXELS
+    t = (2.0 * (np.arange(n) + 0.5) / n - 1.0) * math.tan(math.radians(BEAM_HALF_FOV_DEG))
+    tx, ty = np.meshgrid(t, t)
+    cos_psi = 1.0 / np.sqrt(1.0 + tx**2 + ty**2)
+    rel = light.beam_profile(np.arccos(cos_psi)) * cos_psi**3 / math.pi
+    i0 = np.asarray(light.intensity_W_sr, float)
+    return np.ascontiguousarray((rel[..., None] * i0).astype(np.float32))
+
+
+#: Texels per side of a bowed sample's normal map: the dome's slopes are linear in x and y, so
+#: bilinear interpolation reproduces them exactly between texel centres.
+NORMAL_TEXELS = 256
+
+
+def normal_texture(sagitta_m: float, half_extent_m: tuple[float, float]) -> np.ndarray:
+    """Mitsuba `normalmap` texture of the dome (simulator.scene.bow_slopes): per texel the unit
+    normal (−h_x, −h_y, 1)/‖·‖ stored as (n + 1)/2. Column ix ↔ x, row iy ↔ y (simulator.texture:
+    the rectangle's uv = (local + 1)/2, bitmap rows grow with v)."""
+    from simulator.scene import bow_slopes
+
+    hx, hy = half_extent_m
+    n = NORMAL_TEXELS
+    x = (2.0 * (np.arange(n) + 0.5) / n - 1.0) * hx
+    y = (2.0 * (np.arange(n) + 0.5) / n - 1.0) * hy
+    gx, gy = bow_slopes(sagitta_m, min(hx, hy), *np.meshgrid(x, y))
+    normal = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    return np.ascontiguousarray(((normal + 1.0) / 2.0).astype(np.float32))
 
 
 def look_at_up(camera_pos_m, target_m=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -252,6 +297,10 @@ class Renderer:
         }
         self.effect_counts: Counter[str] = Counter()
         self._render_effects = ["render", f"light_{scene.light.type}"]
+        if scene.light.beam_falloff:
+            self._render_effects.append("beam_profile")
+        if scene.geometry.sample_bow_m:
+            self._render_effects.append("sample_bow")
         if scene.holder is not None:
             self._render_effects.append("holder")
         if scene.stray_light is not None:
@@ -302,7 +351,7 @@ class Renderer:
             "sample": {
                 "type": "rectangle",  # one-sided, normal +z, default extent [-1, 1]²
                 "to_world": T().scale([hx, hy, 1.0]),
-                "bsdf": sample_bsdf if sample_bsdf is not None else material_dict(scene.material),
+                "bsdf": sample_bsdf if sample_bsdf is not None else self._sample_material(),
             },
         }
         for k, (centre, ext) in enumerate(holder_walls(scene)):
@@ -322,11 +371,46 @@ class Renderer:
             }
         return desc
 
+    def _sample_material(self) -> dict:
+        """The sample's BSDF; with a bowed sample (scene geometry.sample_bow_m) wrapped in
+        Mitsuba's `normalmap`, whose texture holds the dome's unit normals (module
+        `normal_texture`). The rectangle's shading frame is the world's (+x, +y, +z), so the
+        map's normals are the sample frame's."""
+        desc = material_dict(self.scene.material)
+        bow = self.scene.geometry.sample_bow_m
+        if not bow:
+            return desc
+        return {
+            "type": "normalmap",
+            "normalmap": {
+                "type": "bitmap",
+                "bitmap": self._mi.Bitmap(normal_texture(bow, self.sample_half_extent_m)),
+                "raw": True,
+                "filter_type": "bilinear",
+                "wrap_mode": "clamp",
+            },
+            "bsdf": desc,
+        }
+
     def _light_dict(self) -> dict:
         light = self.scene.light
         dummy = self._mi.ScalarTransform4f().look_at(
             origin=[0.0, 0.0, 1.0], target=[0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0]
         )
+        if light.type == "point" and light.beam_falloff > 0:
+            return {
+                "type": "projector",
+                "to_world": dummy,
+                "fov": 2.0 * BEAM_HALF_FOV_DEG,
+                "fov_axis": "x",
+                "irradiance": {
+                    "type": "bitmap",
+                    "bitmap": self._mi.Bitmap(beam_texture(light)),
+                    "raw": True,
+                    "filter_type": "bilinear",
+                    "wrap_mode": "clamp",
+                },
+            }
         if light.type == "point":
             return {
                 "type": "point",
@@ -387,7 +471,7 @@ class Renderer:
         p = self._params
         light = self.scene.light
         lp = [float(v) for v in light_pos_m]
-        if light.type == "point":
+        if light.type == "point" and not light.beam_falloff:
             p["light.position"] = mi.Point3f(*lp)
         else:
             # Spot and area lamps face the sample centre (the rig aims the lamp at it).
@@ -398,7 +482,10 @@ class Renderer:
                 tw = tw.scale([light.radius_m, light.radius_m, 1.0])
             p["light.to_world"] = mi.Transform4f(tw) if hasattr(mi, "Transform4f") else tw
         scale_in_scene = self.scene.stray_light is not None
-        if scale_in_scene:
+        if scale_in_scene and light.beam_falloff:
+            texture = beam_texture(light) * np.float32(intensity_scale)
+            p["light.irradiance.data"] = mi.TensorXf(texture)
+        elif scale_in_scene:
             key, base = (
                 ("light.emitter.radiance.value", light.radiance_W_m2_sr)
                 if light.type == "area"

@@ -240,6 +240,29 @@ class LightSpec(Strict):
     drift_per_hour: float = Field(
         0.0, ge=-0.5, le=0.5, description="relative output change per hour since switch-on"
     )
+    # Beam non-uniformity: the lamp's radiant intensity falls off its axis, I(ψ) = I₀ (1 −
+    # a (ψ/ψ_a)²) with a = `beam_falloff` at ψ_a = `beam_falloff_at_deg` (the rig aims the
+    # axis at the sample centre, where the certificate's I₀ holds). A halogen lamp behind a
+    # condenser or reflector: 1–5 % over a few degrees (lamp makers' beam plots); a bare
+    # filament or an LED behind a diffuser: well under 1 %. The lab believes I₀ everywhere, so
+    # each calibrated f is multiplied by 1 − a (ψ/ψ_a)² at its point. Rendered by Mitsuba's
+    # `projector` emitter (a pinhole lamp with an intensity texture): point lamps only.
+    beam_falloff: float = Field(0.0, ge=0, lt=1, description="intensity lost at ψ_a")
+    beam_falloff_at_deg: float = Field(5.0, gt=0, lt=30)
+
+    @model_validator(mode="after")
+    def _beam_on_a_point_lamp(self) -> LightSpec:
+        if self.beam_falloff > 0 and self.type != "point":
+            raise ValueError(
+                f"beam_falloff is rendered for a point lamp (Mitsuba projector); a {self.type} "
+                "lamp's beam is its own (spot: beam_width_deg/cutoff_deg; area: Lambertian)"
+            )
+        return self
+
+    def beam_profile(self, psi_rad):
+        """I(ψ)/I₀: the relative radiant intensity at angle ψ (radians) off the lamp's axis."""
+        x = np.asarray(psi_rad, float) / np.radians(self.beam_falloff_at_deg)
+        return np.clip(1.0 - self.beam_falloff * x**2, 0.0, None)
 
     @property
     def area_m2(self) -> float:
@@ -333,6 +356,19 @@ class GeometryTruth(Strict):
       file's `light_distance_m`. A tape measure to a lamp's filament is good to a few mm
       (~2–5 mm on a 0.5 m arm; the filament sits inside an envelope). It scales the
       irradiance the lab believes by (r/(r+δ))², so every calibrated f by ≈ 1 − 2δ/r.
+    - `camera_distance_error_m`: the camera's true distance (its entrance pupil) from the
+      sample centre minus the rig file's `camera_distance_m`, along its line of sight: the lab
+      traces each pixel's ray from the wrong point, so it puts the pixel's surface point, and
+      with it the lamp's distance and angle there, slightly off. Radiance does not fall with
+      distance, so f moves only through that irradiance, E(x_true)/E(x_believed) (a pupil
+      inside a lens is known to ~5–10 mm);
+    - `sample_bow_m`: the sample's non-flatness, a smooth dome (negative: a dish) of sagitta s
+      over its half-side R: height h(x, y) = s (1 − (x² + y²)/R²), so its local normal leans by
+      the slopes (∂h/∂x, ∂h/∂y) = −2 s (x, y)/R² while the lab believes it flat. A sheet sample
+      (paper, foil, film) curls by 0.1–1 mm over 50 mm; a lapped tile is flat to ~10 µm. The
+      irradiance at a point follows its true normal: each calibrated f × n'·ω_i / n·ω_i ≈
+      1 − (h_x ω_i,x + h_y ω_i,y)/ω_i,z (and a lobe's peak moves by the slope). The heights
+      themselves (≤ 1 mm at 0.5 m) are not rendered, only the normals (Mitsuba `normalmap`).
     - `sample_tilt_deg`: the sample plane's tilt on its holder, {"x": τ_x, "y": τ_y}, in the
       convention `gonio calibrate-rig` reports (calibration.arm_offsets.tilt_rotation: a point
       p of the sample's frame sits at R_y(τ_y) R_x(τ_x) p in the rig's). A holder seated on a
@@ -349,7 +385,15 @@ class GeometryTruth(Strict):
         default_factory=dict
     )
     light_distance_error_m: float = 0.0
+    camera_distance_error_m: float = 0.0
+    sample_bow_m: float = Field(0.0, ge=-0.005, le=0.005)
     sample_tilt_deg: dict[Literal["x", "y"], float] = Field(default_factory=dict)
+
+
+def bow_slopes(sagitta_m: float, half_side_m: float, x_m, y_m) -> tuple:
+    """(∂h/∂x, ∂h/∂y) of the dome h = s (1 − (x² + y²)/R²) (GeometryTruth.sample_bow_m)."""
+    k = -2.0 * sagitta_m / half_side_m**2
+    return k * np.asarray(x_m, float), k * np.asarray(y_m, float)
 
 
 class Scene(Strict):

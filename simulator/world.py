@@ -236,6 +236,9 @@ class SimWorld:
         if geo.light_distance_error_m:
             self.effect_counts["light_distance"] += 1
             light = light * (1.0 + geo.light_distance_error_m / np.linalg.norm(light))
+        if geo.camera_distance_error_m:  # the camera further along its own line of sight
+            self.effect_counts["camera_distance"] += 1
+            camera = camera * (1.0 + geo.camera_distance_error_m / np.linalg.norm(camera))
         if geo.sample_tilt_deg:  # the arms seen from the tilted sample's frame
             self.effect_counts["sample_tilt"] += 1
             r_t = _tilt_rotation(geo.sample_tilt_deg).T

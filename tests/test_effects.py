@@ -192,7 +192,8 @@ def test_baseline_loads_no_optional_effect():
     before = dict(r.effect_counts)
     r.render(_sph(30, 0, 0.5), CAM)
     assert r.effect_counts["render"] == before.get("render", 0) + 1
-    for eff in ("stray_light", "holder", "path_integrator", "light_area", "light_spot"):
+    for eff in ("stray_light", "holder", "path_integrator", "light_area", "light_spot",
+                "beam_profile", "sample_bow"):  # fmt: skip
         assert r.effect_counts[eff] == 0
 
 
