@@ -47,6 +47,7 @@ from fitting.budget import scale_sigma
 
 __all__ = [
     "SharedErrors",
+    "is_nuisance_name",
     "shared_errors",
     "ANGLE_NUISANCES",
     "is_nuisance",
@@ -301,7 +302,7 @@ def split_uncertainty(
     """Each non-nuisance parameter's summary with ``sd_total`` (half its 16–84 % width: the
     draws hold every error), ``sd_sys`` and ``sd_stat`` — its spread split by the share of
     variance the nuisance draws explain (module docstring), sd_stat² + sd_sys² = sd_total²."""
-    nuis = [i for i, n in enumerate(names) if _is_nuisance_name(n)]
+    nuis = [i for i, n in enumerate(names) if is_nuisance_name(n)]
     if not nuis:
         return parameters
     z = natural_draws[:, nuis] - natural_draws[:, nuis].mean(axis=0)
@@ -321,7 +322,7 @@ def split_uncertainty(
     return out
 
 
-def _is_nuisance_name(name: str) -> bool:
+def is_nuisance_name(name: str) -> bool:
     return name.startswith("scale_") or name in ANGLE_NUISANCES
 
 
@@ -330,7 +331,7 @@ def carried_words(shared: SharedErrors, names: list[str], natural_draws: np.ndar
     data made of it (posterior median ± sd)."""
     parts = []
     for i, name in enumerate(names):
-        if not _is_nuisance_name(name):
+        if not is_nuisance_name(name):
             continue
         col = natural_draws[:, i]
         if name.startswith("scale_"):

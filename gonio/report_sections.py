@@ -133,8 +133,14 @@ def parameter_table(fit: dict, truth: dict[str, float]) -> str:
     """Every parameter as median with its 68 % interval (value ± σ, enough digits to show it),
     the 95 % interval at the same precision, MAP, the statistical / systematic split when the
     fit records one (fitting.budget), and the truth when the world is simulated."""
+    from fitting.nuisance import is_nuisance_name
+
     split = any(p.get("sd_stat") is not None for p in fit["parameters"].values())
-    head = ["parameter", "unit", "median ± 68 % (statistical)", "95 % interval", "MAP"]
+    # With the shared errors marginalised as nuisance parameters the intervals hold them too;
+    # otherwise (the older treatment) they are statistical and the systematic part stands apart.
+    carried = any(is_nuisance_name(n) for n in fit["parameters"])
+    interval = "median ± 68 % (all errors)" if carried else "median ± 68 % (statistical)"
+    head = ["parameter", "unit", interval, "95 % interval", "MAP"]
     head += ["statistical σ", "systematic σ", "total σ"] if split else []
     head += ["truth", "truth in 95 %"]
     rows = []
@@ -149,7 +155,15 @@ def parameter_table(fit: dict, truth: dict[str, float]) -> str:
         cells += [t, inside]
         rows.append("<tr>" + "".join(f"<td class='num'>{_cell(c)}</td>" for c in cells) + "</tr>")
     notes = [str(n) for n in (fit.get("diagnostics", {}).get("budget") or [])]
-    if split:
+    if split and carried:
+        notes.insert(
+            0,
+            "the intervals hold every error the samples' budget sizes: its shared errors were "
+            "nuisance parameters of the fit; systematic σ is the part of each parameter's "
+            "spread those nuisances explain, statistical σ the rest (total σ = statistical ⊕ "
+            "systematic); the nuisances' own rows have no split",
+        )
+    elif split:
         notes.insert(
             0,
             "systematic σ: the shared errors of the samples' uncertainty budget (the "

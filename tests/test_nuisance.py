@@ -109,6 +109,14 @@ def test_a_shared_scale_is_marginalised_by_the_chain(truth_table) -> None:
         assert p["sd_stat"] ** 2 + p["sd_sys"] ** 2 == pytest.approx(p["sd_total"] ** 2)
     assert fit.parameters["m"]["sd_sys"] < 0.1 * fit.parameters["m"]["sd_total"]
     assert any("marginalised as nuisance" in w for w in fit.diagnostics["budget"])
+    # The report's parameter table shows the split for every model parameter and says the
+    # intervals hold the shared errors (they were marginalised), not "statistical only".
+    from gonio.report_sections import parameter_table
+
+    html_table = parameter_table(fit.to_dict(), {})
+    assert "median ± 68 % (all errors)" in html_table and "systematic σ" in html_table
+    assert "statistical only" not in html_table
+    assert "(statistical)" in parameter_table(plain.to_dict(), {})
 
 
 def test_the_fit_recovers_the_arms_zero_errors_of_a_simulated_rig() -> None:

@@ -37,9 +37,15 @@ MD = REPO / "docs" / "accuracy-vs-time.md"
 
 
 @pytest.fixture(scope="module")
-def rows() -> list[dict]:
+def every_row() -> list[dict]:
     assert CSV.exists(), "run `gonio study accuracy-vs-time --quick --out docs` to create it"
     return read_csv(CSV)
+
+
+@pytest.fixture(scope="module")
+def rows(every_row) -> list[dict]:
+    """The ideal rig's rows (photon and sensor noise only)."""
+    return [r for r in every_row if r["rig"] == "ideal"]
 
 
 def _grid_short(rows, material, param):
@@ -297,6 +303,9 @@ def test_tiny_sweep_regenerates_everything(tmp_path) -> None:
         adaptive=("adaptive-S",),
         adaptive_materials=("rough",),
         adaptive_exposures=("single",),
+        realistic_plans=("grid-S",),
+        realistic_seeds=1,
+        realistic_steps=60,
     )
     out = tmp_path / "docs"
     rows = run_study(out, cfg, progress=False)
@@ -307,13 +316,16 @@ def test_tiny_sweep_regenerates_everything(tmp_path) -> None:
     back = read_csv(out / "accuracy-vs-time.csv")
     assert len(back) == len(rows)
     axes = {r["axis"] for r in back}
-    assert axes == {"plan", "spp", "adaptive"}
+    assert axes == {"plan", "spp", "adaptive", "realistic"}
+    assert {r["rig"] for r in back if r["axis"] == "realistic"} == {"realistic"}
     spp = sorted({r["spp"] for r in back if r["axis"] == "spp"})
     planned = {r["planned_spp"] for r in back if r["axis"] == "spp"}
     assert len(planned) == 1 and spp == [float(x) for x in spp_ladder(int(planned.pop()))]
     text = (out / "accuracy-vs-time.md").read_text()
     assert not re.search(r"\bnan\b", text, re.IGNORECASE), "a figure in the document is NaN"
     assert "## Adaptive vs grid plans" in text and "## Render spp" in text
+    assert "## On a realistic rig" in text and "includes the instrument budget" in text
+    assert (out / "accuracy-vs-time-realistic.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_plan_target_counts_the_rigs_shared_floor(tmp_path) -> None:
@@ -348,3 +360,69 @@ def test_plan_target_counts_the_rigs_shared_floor(tmp_path) -> None:
     assert total == pytest.approx(np.hypot(stat, 2.0), abs=0.01)
     code, text = gonio("--target", "kd=0.03")
     assert code == 0 and "statistical only" in text
+
+
+@pytest.fixture(scope="module")
+def realistic(every_row) -> list[dict]:
+    out = [r for r in every_row if r["rig"] == "realistic"]
+    assert out, "the committed study has no realistic rig: rerun it (gonio study ... --quick)"
+    return out
+
+
+def test_the_realistic_rig_shows_the_floor(every_row, realistic) -> None:
+    """Issue 17: on the realistic rig the largest plan's albedo error sits within a factor 2 of
+    the budget's systematic part (the RMS over rigs against the median systematic half-width:
+    with n rigs drawn from the budget, the RMS error of a shared error of σ_sys is σ_sys ×
+    (1 ± 1/√(2n)) — ±25 % at 8 rigs — so a factor 2 fails only if the budget is wrong), and
+    the ideal rig's error on that plan is far below that floor (it is not statistical)."""
+    from gonio.studies.accuracy_analysis import systematic_floor
+
+    for param in ("kd", "ks"):
+        floor = systematic_floor(every_row, param)
+        top = floor["plan"]
+        ratio = top["rms_rel_error"] / floor["floor"]
+        print(f"{param}: {top['plan']} ({top['poses']} poses) RMS error "
+              f"{100 * top['rms_rel_error']:.2f}% vs systematic {100 * floor['floor']:.2f}% "
+              f"(×{ratio:.2f}) over {top['n']} rigs")  # fmt: skip
+        assert top["n"] >= 6
+        assert 0.5 <= ratio <= 2.0, (param, ratio)
+        ideal = [s for s in summarise(every_row, param) if s["plan"] == top["plan"]
+                 and s["material"] == top["material"] and s["exposures"] == top["exposures"]
+                 and s["axis"] == "plan"]  # fmt: skip
+        assert ideal and ideal[0]["rel_error"] < floor["floor"] / 2, ideal
+    # More poses stop helping: the largest plan's kd error is not below half the smallest's
+    # (on the ideal rig it falls by the √ of the samples ratio, ×3 here).
+    kd = sorted(summarise(every_row, "kd", "realistic"), key=lambda s: s["poses"])
+    assert kd[-1]["rms_rel_error"] > 0.5 * kd[0]["rms_rel_error"], kd
+
+
+def test_plan_target_below_the_floor_says_no_plan_reaches_it(every_row) -> None:
+    """`gonio plan --target P=T --rig R`, R stating its shared errors (lab-example.toml): below
+    the floor it refuses in one line that names the floor; above it, it picks a realistic plan
+    and says its uncertainty includes the instrument budget. m's floor is the arms' part the
+    study measured; kd's is mostly the shared scale, which for lab-example is its reference
+    target's certificate (0.5 %, rig file), swapped in for the study's lamp certificate ⊕
+    distance."""
+    from acquisition.config import load_rig
+    from gonio.studies.accuracy_analysis import systematic_floor
+
+    rig = REPO / "configs" / "rigs" / "lab-example.toml"
+    cert = load_rig(rig).reference.rel_sigma
+
+    def gonio(*args):
+        cmd = [sys.executable, "-m", "gonio.cli", "plan", "--results", str(CSV), *args]
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=REPO)
+        return res.returncode, " ".join((res.stdout + res.stderr).split())
+
+    m_floor = systematic_floor(every_row, "m")["floor"]
+    code, text = gonio("--target", f"m={m_floor / 2:.6f}", "--rig", str(rig))
+    assert code != 0 and "no plan reaches" in text and "on this rig" in text, text
+    assert f"{100 * m_floor:.3g}%" in text and "Traceback" not in text
+    code, text = gonio("--target", f"m={3 * m_floor:.6f}", "--rig", str(rig))
+    assert code == 0 and "including the instrument budget" in text, text
+    code, text = gonio("--target", f"kd={0.6 * cert:.4f}", "--rig", str(rig))
+    assert code != 0 and f"±{100 * cert:.3g}%" in text and "reference target" in text, text
+    code, text = gonio("--target", f"kd={3 * cert:.4f}", "--rig", str(rig))
+    assert code == 0 and "including the instrument budget" in text, text
+    code, text = gonio("--target", "m=0.05")
+    assert code == 0 and "statistical only" in text and "floor is systematic" in text, text

@@ -3,6 +3,7 @@ study real-materials, plan."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import Annotated
@@ -49,6 +50,14 @@ def study_accuracy_vs_time(
     out_dir: Annotated[
         Path, typer.Option("--out", help="Where the document, plot and CSV go.")
     ] = Path("docs"),
+    rigs: Annotated[
+        int | None,
+        typer.Option(
+            "--rigs",
+            help="Realistic rigs per plan, each a fresh draw of a typical lab's shared errors "
+            "(0: leave the realistic rig out).",
+        ),
+    ] = None,
     from_csv: Annotated[bool, _FROM_CSV] = False,
 ) -> None:
     """What accuracy costs in time: sweep poses, exposures and MCMC length on the simulated rig;
@@ -64,7 +73,13 @@ def study_accuracy_vs_time(
         return
     if seeds is not None and seeds < 1:
         raise UserError("--seeds must be ≥ 1")
+    if rigs is not None and rigs < 0:
+        raise UserError("--rigs must be ≥ 0")
     cfg = StudyConfig.quick(seeds) if quick else StudyConfig(seeds=seeds or 3)
+    if rigs is not None:
+        cfg = dataclasses.replace(
+            cfg, realistic_seeds=rigs, realistic_plans=cfg.realistic_plans if rigs else ()
+        )
     rows = run_study(out_dir, cfg, scene_path=scene, progress=True)
     out.print(f"{out_dir / 'accuracy-vs-time.md'}: {len(rows)} result rows")
 
@@ -157,14 +172,22 @@ def plan_cmd(
     """Pick the cheapest plan expected to reach a target accuracy (from the study's results),
     or with --plan describe a plan: what it measures and what a model needs that it leaves out."""
     from gonio.errors import UserError
-    from gonio.studies.accuracy_analysis import pick_plan
-    from gonio.studies.accuracy_sweep import read_csv
 
     if plan_file is not None:
         _describe_plan(plan_file, rig, model)
         return
     if target is None:
         raise UserError("gonio plan needs --target PARAM=REL_ERROR, or --plan FILE to describe")
+    _plan_for_target(target, material, results, rig)
+
+
+def _plan_for_target(target: str, material: str, results: Path, rig: Path | None) -> None:
+    """`gonio plan --target`: the study's cheapest plan for the target, on the realistic rig
+    when `rig` states its shared errors, else on the ideal rig (statistical only, with the
+    rig's certificate as a floor when it states one)."""
+    from gonio.errors import UserError
+    from gonio.studies.accuracy_analysis import pick_plan
+    from gonio.studies.accuracy_sweep import read_csv
 
     param, sep, value = target.partition("=")
     try:
@@ -186,9 +209,19 @@ def plan_cmd(
     floor = None
     if rig is not None:
         from acquisition.config import load_rig
-        from gonio.studies.accuracy_analysis import shared_scale_floor
+        from gonio.studies.accuracy_analysis import (
+            shared_scale_floor,
+            stated_budget,
+            systematic_floor,
+        )
 
-        floor = shared_scale_floor(load_rig(rig), param)
+        rig_cfg = load_rig(rig)
+        stated = stated_budget(rig_cfg)
+        measured = systematic_floor(rows, param)
+        if measured is not None and stated.keys() - {"cert_rel_sigma"}:
+            _plan_on_realistic_rig(rows, param, rel, material, rig_cfg, stated, results)
+            return
+        floor = shared_scale_floor(rig_cfg, param)
     stat_target = rel
     if floor is not None:
         if floor[0] >= rel:
@@ -221,6 +254,15 @@ def plan_cmd(
             f"errors; {why}.",
             markup=False,
         )
+        from gonio.studies.accuracy_analysis import systematic_floor
+
+        measured = systematic_floor(rows, param)
+        if measured is not None:
+            out.print(
+                f"On the study's realistic rig (a typical lab's shared errors) no plan gets "
+                f"{param} below ±{100 * measured['floor']:.3g}%: that floor is systematic.",
+                markup=False,
+            )
     else:
         total = math.hypot(best["rel_error"], floor[0])
         out.print(
@@ -228,3 +270,92 @@ def plan_cmd(
             f"expected total {param} error {100 * total:.2f}% (statistical ⊕ systematic).",
             markup=False,
         )
+
+
+_BUDGET_WORDS = {
+    "cert_rel_sigma": ("certificate", lambda v: f"{100 * v:.3g} %"),
+    "distance_sigma_m": ("lamp distance", lambda v: f"{1e3 * v:.3g} mm"),
+    "zero_sigma_deg": ("encoder zeros", lambda v: f"{v:.3g}°"),
+    "tilt_sigma_deg": ("sample tilt", lambda v: f"{v:.3g}°"),
+    "play_deg": ("gears' play", lambda v: f"{v:.3g}°"),
+    "sag_sigma_deg": ("arm sag", lambda v: f"{v:.3g}°"),
+}
+
+
+def _budget_words(sizes: dict) -> str:
+    return ", ".join(
+        f"{word} {fmt(sizes[k])}" for k, (word, fmt) in _BUDGET_WORDS.items() if k in sizes
+    )
+
+
+def _plan_on_realistic_rig(rows, param, rel, material, rig_cfg, stated, results) -> None:  # noqa: ANN001
+    """`gonio plan --target` for a rig that states its shared errors: from the study's realistic
+    rig, the cheapest plan whose 68 % half-width (its statistical part ⊕ the systematic part
+    for this rig: the shared scale swapped for the rig's own, gonio.studies.accuracy_analysis.
+    realistic_choices) and whose RMS error over the study's rigs both reach the target; or one
+    line saying that no plan can, because the floor those errors leave is above the target."""
+    from gonio.errors import UserError
+    from gonio.studies.accuracy_analysis import realistic_choices, shared_scale_sigma
+    from gonio.studies.accuracy_sweep import RECORD_NAME
+    from gonio.studies.common import read_record
+
+    record = results.with_name(RECORD_NAME)
+    study = read_record(record).get("realistic", {}).get("budget") if record.exists() else None
+    scale_study = shared_scale_sigma(budget=study) if study else None
+    scale_rig = shared_scale_sigma(rig_cfg)
+    choices = realistic_choices(rows, param, scale_study, scale_rig)
+    top = max(choices, key=lambda s: (s["poses"], s["lab_time_s"]))
+    floor = top["rel_sys_rig"]
+    words = []
+    if top["scale_swapped"]:
+        words.append(
+            f"The shared scale is your rig's ({100 * scale_rig:.3g} %, "
+            + (
+                "its reference target's certificate"
+                if rig_cfg.reference is not None
+                else "its lamp's certificate and distance"
+            )  # fmt: skip
+            + f") in place of the study's ({100 * scale_study:.3g} %)."
+        )
+    angles = [k for k in _BUDGET_WORDS if k not in ("cert_rel_sigma", "distance_sigma_m")]
+    if study and any(abs(stated.get(k, 0.0) - study[k]) > 1e-9 for k in angles):
+        words.append(
+            f"The study's realistic rig states {_budget_words(study)}; yours states "
+            f"{_budget_words(stated) or 'none of these'}: the arms' part of the floor moves "
+            "with those sizes."
+        )
+    if top["material"] != material:
+        words.append(
+            f"The realistic rig was studied on a {top['material']} material; its floor stands "
+            f"in for your {material} one."
+        )
+    if floor >= rel:
+        raise UserError(
+            f"no plan reaches ±{100 * rel:g}% on {param} on this rig: its shared errors leave "
+            f"±{100 * floor:.3g}% (the systematic part of the 68 % interval on the study's "
+            f"largest realistic plan, {top['plan']} with {top['poses']} poses, over "
+            f"{top['n']} rigs), which more poses or longer exposures cannot average away"
+            + ("; " + " ".join(words) if words else "")
+        )
+    # Both the quoted uncertainty and the error the rigs really showed must meet the target
+    # (a small plan's intervals can be too narrow: the study's page says where).
+    ok = [s for s in choices if max(s["rel_total_rig"], s["rel_error_rig"]) <= rel]
+    if not ok:
+        raise UserError(
+            f"no plan in the study reaches ±{100 * rel:g}% on {param} on this rig: the "
+            f"largest, {top['plan']}, gives ±{100 * top['rel_total_rig']:.3g}% (of which "
+            f"{100 * floor:.3g}% systematic, the floor)"
+        )
+    best = min(ok, key=lambda s: (s["lab_time_s"], s["compute_s"]))
+    out.print(
+        f"{best['plan']}: {best['poses']} poses, {best['exposures']} exposure, "
+        f"MCMC {best['mcmc_steps']} steps → expected {param} uncertainty "
+        f"±{100 * best['rel_total_rig']:.2f}% (68 %, including the instrument budget: "
+        f"systematic {100 * best['rel_sys_rig']:.2f}%, statistical "
+        f"{100 * best['rel_stat_68']:.2f}%; RMS error {100 * best['rel_error_rig']:.2f}% "
+        f"over {best['n']} simulated rigs); expected lab "
+        f"time {best['lab_time_s'] / 60:.1f} min",
+        markup=False,
+    )
+    for line in words:
+        out.print(line, markup=False)

@@ -24,6 +24,10 @@ __all__ = [
     "light_distance_m",
     "pick_plan",
     "adaptive_material",
+    "systematic_floor",
+    "stated_budget",
+    "shared_scale_sigma",
+    "realistic_choices",
 ]
 
 
@@ -38,12 +42,15 @@ def _key(r: dict[str, Any]) -> tuple:
     )
 
 
-def summarise(rows: list[dict[str, Any]], param: str = "m") -> list[dict[str, Any]]:
-    """One row per configuration for `param`: medians over seeds (lab/compute time, error,
-    width) and coverage pooled over seeds."""
+def summarise(
+    rows: list[dict[str, Any]], param: str = "m", rig: str = "ideal"
+) -> list[dict[str, Any]]:
+    """One row per configuration of `rig` ("ideal" or "realistic") for `param`: medians over
+    seeds (lab/compute time, error, width, its systematic part), the root-mean-square error,
+    and coverage pooled over seeds."""
     groups: dict[tuple, list[dict[str, Any]]] = defaultdict(list)
     for r in rows:
-        if r["param"] == param:
+        if r["param"] == param and r.get("rig", "ideal") == rig:
             groups[_key(r)].append(r)
     out = []
     for (mat, plan, exp, steps, light, spp), rs in sorted(groups.items()):
@@ -67,6 +74,10 @@ def summarise(rows: list[dict[str, Any]], param: str = "m") -> list[dict[str, An
                 "rel_error": float(np.median([r["rel_error"] for r in rs])),
                 "rel_half_width_68": float(np.median([r["rel_half_width_68"] for r in rs])),
                 "coverage_68": float(np.mean([r["covered_68"] for r in rs])),
+                "coverage_95": float(np.mean([r.get("covered_95", math.nan) for r in rs])),
+                "rms_rel_error": float(np.sqrt(np.mean([r["rel_error"] ** 2 for r in rs]))),
+                "rel_sys_68": float(np.median([r.get("rel_sys_68", 0.0) for r in rs])),
+                "rig": rig,
                 "n": len(rs),
             }
         )
@@ -225,16 +236,21 @@ def adaptive_material(rows: list[dict[str, Any]]) -> str | None:
 
 
 def pick_plan(
-    rows: list[dict[str, Any]], param: str, target_rel_error: float, material: str
+    rows: list[dict[str, Any]],
+    param: str,
+    target_rel_error: float,
+    material: str,
+    rig: str = "ideal",
 ) -> dict[str, Any] | None:
     """The plan configuration with the least lab time expected to reach ±`target_rel_error` on
     `param` for a material character: both its median error (over seeds) and its median 68%
     credible half-width — the uncertainty a lab would quote — within the target (the error
     alone, over a few seeds, can be lucky). None if no plan does. The spp side sweep (a
-    different lamp, the same lab) is not a plan and is left out."""
+    different lamp, the same lab) is not a plan and is left out. On the realistic `rig` the
+    half-width includes the instrument budget's systematic part."""
     ok = [
         s
-        for s in summarise(rows, param)
+        for s in summarise(rows, param, rig)
         if s["material"] == material
         and max(s["rel_error"], s["rel_half_width_68"]) <= target_rel_error
         and is_plan_row(s)
@@ -265,3 +281,84 @@ def shared_scale_floor(rig, param: str) -> tuple[float, str] | None:  # noqa: AN
     else:
         return None
     return (float(rel), source) if rel > 0 else None
+
+
+def systematic_floor(rows: list[dict[str, Any]], param: str) -> dict[str, Any] | None:
+    """The realistic rig's floor on `param`: on its largest plan (most poses), the median over
+    rigs of the systematic part of the 68 % half-width (what the instrument budget's shared
+    errors leave however much is measured), with that plan's summary; None when the rows hold
+    no realistic rig."""
+    s = summarise(rows, param, "realistic")
+    if not s:
+        return None
+    top = max(s, key=lambda x: (x["poses"], x["lab_time_s"]))
+    return {"floor": top["rel_sys_68"], "plan": top}
+
+
+def stated_budget(rig) -> dict[str, float]:  # noqa: ANN001 - RigConfig
+    """The shared-error sizes (k = 1) a rig file states, under the names of the study's
+    instrument budget (simulator.instrument_draws.InstrumentBudget): the lamp's or the reference
+    target's certificate, the lamp distance, the largest encoder-zero σ, the sample tilt, the
+    gears' play and the arms' sag. What it leaves unstated is absent."""
+    g = rig.geometry
+    out: dict[str, float] = {}
+    cert = rig.reference.rel_sigma if rig.reference is not None else rig.light.intensity_rel_sigma
+    if cert:
+        out["cert_rel_sigma"] = float(cert)
+    zeros = g.axis_zero_sigma_deg
+    if isinstance(zeros, dict):
+        zeros = max(zeros.values(), default=None)
+    for key, value in (
+        ("distance_sigma_m", g.light_distance_sigma_m),
+        ("zero_sigma_deg", zeros),
+        ("tilt_sigma_deg", g.sample_tilt_sigma_deg),
+        ("play_deg", g.backlash_deg),
+        ("sag_sigma_deg", g.arm_sag_deg),
+    ):
+        if value:
+            out[key] = float(value)
+    return out
+
+
+def shared_scale_sigma(rig=None, budget: dict | None = None) -> float | None:  # noqa: ANN001
+    """The shared radiometric scale's relative σ: of a rig file (its reference target's
+    certificate, which absorbs the lamp's intensity and distance, both measured the same way;
+    else the lamp's certificate ⊕ 2σ_r/r, E ∝ 1/r²), or of the study's instrument budget (the
+    lamp's certificate ⊕ its distance, on the study rig's lamp distance). None: not stated."""
+    if budget is not None:
+        r = light_distance_m()
+        return math.hypot(budget["cert_rel_sigma"], 2.0 * budget["distance_sigma_m"] / r)
+    if rig.reference is not None:
+        return float(rig.reference.rel_sigma)
+    cert = rig.light.intensity_rel_sigma
+    dist = rig.geometry.light_distance_sigma_m
+    if cert is None and dist is None:
+        return None
+    return math.hypot(cert or 0.0, 2.0 * (dist or 0.0) / rig.geometry.light_distance_m)
+
+
+def realistic_choices(
+    rows: list[dict[str, Any]],
+    param: str,
+    scale_study: float | None = None,
+    scale_rig: float | None = None,
+) -> list[dict[str, Any]]:
+    """The realistic rig's plans for `param`, each with its 68 % half-width split into the
+    statistical part (`rel_stat_68`) and the systematic part for the user's rig
+    (`rel_sys_rig`), their sum in quadrature (`rel_total_rig`), and the RMS error over the rigs
+    (`rel_error_rig`). For an amplitude (kd, ks),
+    whose systematic part is mostly the shared scale, the study's scale σ is swapped for the
+    rig's (first order: sys_rig² = max(sys² − scale_study², 0) + scale_rig², the error's
+    likewise); a shape
+    parameter's (m) systematic part is the arms' angles', kept as the study measured it."""
+    out = []
+    swap = param.startswith(_AMPLITUDE_PREFIXES) and None not in (scale_study, scale_rig)
+    for s in summarise(rows, param, "realistic"):
+        half, sys, err = s["rel_half_width_68"], s["rel_sys_68"], s["rms_rel_error"]
+        stat = math.sqrt(max(half**2 - sys**2, 0.0))
+        if swap:
+            sys = math.sqrt(max(sys**2 - scale_study**2, 0.0) + scale_rig**2)
+            err = math.sqrt(max(err**2 - scale_study**2, 0.0) + scale_rig**2)
+        out.append({**s, "rel_stat_68": stat, "rel_sys_rig": sys, "rel_error_rig": err,
+                    "rel_total_rig": math.hypot(stat, sys), "scale_swapped": swap})  # fmt: skip
+    return out

@@ -3,6 +3,7 @@ is computed here from the rows, none typed in by hand."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from gonio.studies.accuracy_analysis import (
     spp_summary,
     summarise,
 )
+from gonio.studies.accuracy_floor import realistic_section
 from gonio.studies.accuracy_sweep import (
     ADAPTIVE_PLANS,
     AREA_LAMP_RADIUS_M,
@@ -40,6 +42,17 @@ def _pct(x: float, digits: int = 3) -> str:
     return f"{100 * x:.{digits}f}%"
 
 
+def _quick(cfg: StudyConfig) -> bool:
+    """Whether `--quick` (and at most --rigs) made this configuration."""
+    q = StudyConfig.quick(cfg.seeds)
+    return (
+        dataclasses.replace(
+            cfg, realistic_seeds=q.realistic_seeds, realistic_plans=q.realistic_plans
+        )
+        == q
+    )
+
+
 def write_markdown(
     path: Path,
     rows: list[dict[str, Any]],
@@ -48,7 +61,10 @@ def write_markdown(
     *,
     machine: dict[str, Any] | None = None,
     png2: str | None = None,
+    realistic: list[str] | None = None,
 ) -> None:
+    """The page from the ideal rig's `rows`, with the realistic rig's section lines
+    (gonio.studies.accuracy_floor) after the main table."""
     summary = [s for s in summarise(rows, "m") if is_plan_row(s)]
     kd = {
         (s["material"], s["plan"], s["exposures"], s["mcmc_steps"]): s
@@ -66,8 +82,11 @@ def write_markdown(
         "",
         "```sh",
         "gonio study accuracy-vs-time"
-        + (" --quick" if cfg == StudyConfig.quick(cfg.seeds) else "")
-        + f" --seeds {cfg.seeds} --out docs",
+        + (" --quick" if _quick(cfg) else "")
+        + f" --seeds {cfg.seeds}"
+        + (f" --rigs {cfg.realistic_seeds}" if cfg.realistic_plans else " --rigs 0")
+        * (cfg.realistic_seeds != StudyConfig().realistic_seeds or not cfg.realistic_plans)
+        + " --out docs",
         "```",
         "",
     ]
@@ -86,7 +105,14 @@ def write_markdown(
         "the rig's virtual clock), calibration of the Mitsuba-rendered frames, and a "
         "Torrance-Sparrow + Lambert fit (least squares, then emcee) of one colour channel. "
         "Errors are against the scene's own parameters. Values are medians over "
-        f"{cfg.seeds} seeds (independent sensor noise).",
+        f"{cfg.seeds} seeds (independent sensor noise). The rig of every table but the "
+        "realistic rig's section is ideal: its only errors are photon and sensor noise, so "
+        "these figures are **statistical only**"
+        + (
+            "; the realistic rig's section includes a typical lab's instrument budget."
+            if realistic
+            else "."
+        ),
         "",
         f"![roughness error vs lab time and compute time]({png})",
         "",
@@ -115,6 +141,7 @@ def write_markdown(
     ]
     for p in params:
         lines.append(f"| {p} | {cov68[p]:.2f} | {cov95[p]:.2f} |")
+    lines += realistic or []
     lines += _adaptive_section(rows, cfg, png2)
     lines += _spp_section(rows, cfg)
     lines += _recommendation(rows, summary)
@@ -123,7 +150,7 @@ def write_markdown(
 
 def _recommendation(rows: list[dict[str, Any]], summary: list[dict[str, Any]]) -> list[str]:
     """The page's recommendation: per material and target, the cheapest plan that reaches it."""
-    lines = ["", "## Recommendation", ""]
+    lines = ["", "## Recommendation (ideal rig: statistical only)", ""]
     for mat in sorted({s["material"] for s in summary}):
         for target in (0.05, 0.01, 0.001, 0.0003):
             best = pick_plan(rows, "m", target, mat)
@@ -409,13 +436,25 @@ def _spp_findings(sp: list[dict[str, Any]]) -> list[str]:
 def write_document(out_dir: Path) -> Path:
     """docs/accuracy-vs-time.md and its two plots from the study's CSV and run record in
     `out_dir` (so the page can be rebuilt without rerunning the sweep)."""
-    from gonio.studies.accuracy_plots import plot, plot_adaptive_spp
+    from gonio.studies.accuracy_plots import plot, plot_adaptive_spp, plot_floor
 
-    rows = read_csv(out_dir / CSV_NAME)
+    every = read_csv(out_dir / CSV_NAME)
+    rows = [r for r in every if r["rig"] == "ideal"]
     record = read_record(out_dir / RECORD_NAME)
     cfg = config_from_fields(record["config"])
     png = plot(rows, out_dir / "accuracy-vs-time.png")
     png2 = plot_adaptive_spp(rows, out_dir / "accuracy-vs-time-adaptive-spp.png")
+    floor = None
+    if len(every) > len(rows):
+        floor = plot_floor(every, out_dir / "accuracy-vs-time-realistic.png").name
     path = out_dir / "accuracy-vs-time.md"
-    write_markdown(path, rows, png.name, cfg, machine=record.get("machine"), png2=png2.name)
+    write_markdown(
+        path,
+        rows,
+        png.name,
+        cfg,
+        machine=record.get("machine"),
+        png2=png2.name,
+        realistic=realistic_section(every, record, floor),
+    )
     return path

@@ -17,7 +17,7 @@ from gonio.studies.accuracy_analysis import (
 from gonio.studies.accuracy_sweep import AREA_LAMP_RADIUS_M, MATERIALS
 from gonio.studies.common import plain_log_ticks, pyplot, save_png
 
-__all__ = ["plot", "plot_adaptive_spp"]
+__all__ = ["plot", "plot_adaptive_spp", "plot_floor"]
 
 
 _COLOURS = {"short": "#228833", "single": "#4477aa", "bracket": "#ee6677"}
@@ -220,3 +220,54 @@ def _plot_adaptive_panel(ax, rows: list[dict[str, Any]], mat: str, metric: str) 
     what = "error" if metric == "rel_error" else "precision (68% half-width)"
     ax.set_title(f"{mat} lobe, {exp} exposure: adaptive vs grid, {what}\n(poses in brackets)")
     ax.legend(fontsize=8, loc="lower left")
+
+
+_PARAM_COLOURS = {"kd": "#4477aa", "ks": "#ee6677", "m": "#228833"}
+
+
+def plot_floor(rows: list[dict[str, Any]], path: Path) -> Path:
+    """Error vs lab time on the realistic rig beside the ideal one (same material, exposures
+    and plans), per parameter: the realistic rig's RMS error over its rigs levels off at the
+    instrument budget's systematic part (dashed) where the ideal rig's keeps falling."""
+    plt = pyplot()
+
+    params = [p for p in ("kd", "ks", "m") if summarise(rows, p, "realistic")]
+    fig, axes = plt.subplots(1, len(params), figsize=(4.2 * len(params), 4.2), squeeze=False)
+    for ax, param in zip(axes[0], params, strict=True):
+        real = sorted(summarise(rows, param, "realistic"), key=lambda s: s["lab_time_s"])
+        mat, exp = real[0]["material"], real[0]["exposures"]
+        plans = {s["plan"] for s in real}
+        ideal = sorted(
+            (
+                s
+                for s in summarise(rows, param)
+                if s["material"] == mat
+                and s["exposures"] == exp
+                and s["plan"] in plans
+                and s["axis"] == "plan"
+            ),
+            key=lambda s: s["lab_time_s"],
+        )
+        colour = _PARAM_COLOURS.get(param, "k")
+        t_real = [s["lab_time_s"] / 60 for s in real]
+        ax.plot(t_real, [100 * s["rms_rel_error"] for s in real], "o-", color=colour,
+                label="realistic rig: RMS error over rigs")  # fmt: skip
+        ax.plot(t_real, [100 * s["rel_half_width_68"] for s in real], "^:", color=colour,
+                mfc="none", label="realistic rig: ±68 % (budget included)")  # fmt: skip
+        ax.plot(t_real, [100 * s["rel_sys_68"] for s in real], "--", color="0.3",
+                label="its systematic part (the floor)")  # fmt: skip
+        if ideal:
+            ax.plot([s["lab_time_s"] / 60 for s in ideal], [100 * s["rel_error"] for s in ideal],
+                    "s-", color="0.6", label="ideal rig: median error")  # fmt: skip
+        ax.set_yscale("log")
+        plain_log_ticks(ax)
+        ax.set_xlabel("lab time per measurement [min]")
+        ax.set_ylabel(f"relative error of {param} [%]")
+        ax.set_title(f"{param} ({mat} lobe, {exp} exposures)")
+        ax.grid(alpha=0.3, which="both")
+    axes[0][-1].legend(fontsize=7, loc="best")
+    fig.suptitle("The realistic rig's floor: more poses stop helping once the shared errors rule")
+    fig.tight_layout()
+    save_png(fig, path)
+    plt.close(fig)
+    return path

@@ -84,6 +84,13 @@ EXPOSURES: dict[str, tuple[float, ...]] = {
 }
 
 
+# The realistic rig's world: configs/scenes/<this>.toml (its lamp, drift and sensor), with the
+# study's material and a fresh draw of the instrument budget's shared errors per seed.
+REALISTIC_SCENE = "realistic"
+# Seed of the Latin hypercube the realistic rigs' errors are drawn from (every plan sees the
+# same rigs, so the plans differ only in what they measure).
+REALISTIC_DRAWS_SEED = 17
+
 # The study's area-lamp variant of the base scene: the 10 mm disk of configs/scenes/effects.toml,
 # with the base lamp's intensity (same far-field signal as the point lamp, see LightSpec).
 AREA_LAMP_RADIUS_M = 0.005
@@ -102,6 +109,7 @@ CSV_COLUMNS = [
     "spp",
     "planned_spp",
     "seed",
+    "rig",
     "samples",
     "lab_time_s",
     "simulate_s",
@@ -116,10 +124,11 @@ CSV_COLUMNS = [
     "rel_half_width_68",
     "covered_68",
     "covered_95",
+    "rel_sys_68",
 ]
 
 
-_TEXT_COLUMNS = ("axis", "material", "plan", "plan_type", "exposures", "light", "param")
+_TEXT_COLUMNS = ("axis", "material", "plan", "plan_type", "exposures", "light", "param", "rig")
 
 
 @dataclass(frozen=True)
@@ -133,6 +142,7 @@ class RunSpec:
     mcmc_steps: int
     light: str = "base"  # "base" = the base scene's lamp; "area" = the area-lamp variant
     spp: int | None = None
+    rig: str = "ideal"  # "ideal": photon and sensor noise only; "realistic": REALISTIC_SCENE
 
 
 @dataclass(frozen=True)
@@ -152,6 +162,14 @@ class StudyConfig:
     adaptive: tuple[str, ...] = ("adaptive-S", "adaptive-M", "adaptive-L")
     adaptive_materials: tuple[str, ...] = ("glossy",)
     adaptive_exposures: tuple[str, ...] = ("short",)
+    # The realistic rig (REALISTIC_SCENE with the instrument budget's shared errors, a fresh
+    # draw of them per seed: each seed is another rig): these plans, material and exposures,
+    # `realistic_seeds` rigs, and MCMC long enough for the nuisance parameters (17 with G).
+    realistic_plans: tuple[str, ...] = ("grid-S", "grid-M", "grid-L")
+    realistic_material: str = "rough"
+    realistic_exposures: str = "bracket"
+    realistic_seeds: int = 8
+    realistic_steps: int = 600
 
     @classmethod
     def quick(cls, seeds: int | None = None) -> StudyConfig:
@@ -182,8 +200,8 @@ def spp_ladder(planned: int) -> list[int]:
 def _configurations(cfg: StudyConfig, base) -> list[RunSpec]:
     """The sweep: every plan × exposure at the shortest MCMC, plus every MCMC length on the
     middle plan with brackets (MCMC length does not change lab time, only compute time), the
-    spp ladder on the area-lamp variant (only where the planner asks for more than 1 spp), and
-    the adaptive plans."""
+    spp ladder on the area-lamp variant (only where the planner asks for more than 1 spp), the
+    adaptive plans, and the plans on the realistic rig."""
     from gonio.backends import planned_spp
 
     runs = []
@@ -207,6 +225,17 @@ def _configurations(cfg: StudyConfig, base) -> list[RunSpec]:
         cfg.adaptive_materials, cfg.adaptive, cfg.adaptive_exposures
     ):
         runs.append(RunSpec("adaptive", mat, plan, exp, short))
+    for plan in cfg.realistic_plans:
+        runs.append(
+            RunSpec(
+                "realistic",
+                cfg.realistic_material,
+                plan,
+                cfg.realistic_exposures,
+                cfg.realistic_steps,
+                rig="realistic",
+            )
+        )
     return runs
 
 
@@ -237,15 +266,21 @@ def run_sweep(
     record: dict[str, Any] = {"config": config_fields(cfg), "machine": {"start": machine()}}
     base = load_scene(scene_path or config_dir() / "scenes" / "demo.toml")
     rig = sim_rig()
-    runs = _configurations(cfg, base)
+    jobs = [
+        (spec, seed)
+        for spec in _configurations(cfg, base)
+        for seed in range(cfg.realistic_seeds if spec.rig == "realistic" else cfg.seeds)
+    ]
     rows: list[dict[str, Any]] = []
     with (
         tempfile.TemporaryDirectory() as tmp,
-        Progress("study", len(runs) * cfg.seeds, enabled=progress) as bar,
+        Progress("study", len(jobs), enabled=progress) as bar,
     ):
-        for k, (spec, seed) in enumerate(itertools.product(runs, range(cfg.seeds))):
+        for k, (spec, seed) in enumerate(jobs):
             rows += _one_run(spec, seed, base, rig, cfg, Path(tmp) / f"run{k:04d}")
             bar.advance()
+    if cfg.realistic_plans:
+        record["realistic"] = _realistic_record(cfg, rig)
     record["machine"]["end"] = machine()
     record["machine"]["wall_s"] = time.perf_counter() - wall0
     return rows, record
@@ -260,6 +295,10 @@ def _one_run(spec: RunSpec, seed: int, base, rig, cfg: StudyConfig, run_dir: Pat
     from gonio.pipeline import AcquireSpec, SpineSpec, run_spine
 
     scene = _scene(base, spec.material, seed, spec.light, spec.spp)
+    plan = _plan_config(spec.plan, spec.exposures)
+    operator = None
+    if spec.rig == "realistic":
+        scene, rig, plan, operator = _realistic(spec, seed, cfg, rig, plan)
     truth = reference_parameters(scene)
     fit_opts = FitOptions(
         model="torrance-sparrow",
@@ -275,10 +314,11 @@ def _one_run(spec: RunSpec, seed: int, base, rig, cfg: StudyConfig, run_dir: Pat
         SpineSpec(
             AcquireSpec(
                 rig=rig,
-                plan=_plan_config(spec.plan, spec.exposures),
+                plan=plan,
                 scene=scene,
                 progress=False,
                 announce=False,
+                operator=operator,
             ),
             reduce=ReduceOptions(bin_px=4, mode="center"),
             fit=fit_opts,
@@ -300,6 +340,7 @@ def _one_run(spec: RunSpec, seed: int, base, rig, cfg: StudyConfig, run_dir: Pat
         "spp": planned_spp(scene),
         "planned_spp": planned_spp(_scene(base, spec.material, seed, spec.light)),
         "seed": seed,
+        "rig": spec.rig,
         "samples": int(fit["n_samples"]) if fit.get("n_samples") else len(res.table),
         "lab_time_s": res.lab_time_s,
         "simulate_s": t["acquire"],
@@ -326,9 +367,59 @@ def _one_run(spec: RunSpec, seed: int, base, rig, cfg: StudyConfig, run_dir: Pat
                 "rel_half_width_68": half / abs(tv),
                 "covered_68": int(p["p16"] <= tv <= p["p84"]),
                 "covered_95": int(p["p2.5"] <= tv <= p["p97.5"]),
+                # The budget's systematic part of the 68 % half-width (fitting.nuisance:
+                # split_uncertainty); 0 on the ideal rig, whose budget is empty.
+                "rel_sys_68": float(p.get("sd_sys") or 0.0) / abs(tv),
             }
         )
     return rows
+
+
+def _realistic(spec: RunSpec, seed: int, cfg: StudyConfig, rig, plan: PlanConfig):
+    """Seed `seed`'s realistic rig: REALISTIC_SCENE with the study's material and a draw of the
+    instrument budget's shared errors (the seed-th row of a Latin hypercube over the seeds),
+    the rig file stating that budget, the plan with the darks and flat field a lab records,
+    and an operator for the flat source."""
+    from acquisition.config import CalibrationPhasesConfig, DarkPhaseConfig, FlatPhaseConfig
+    from acquisition.operator import AutoOperator
+    from gonio.backends import instrument_budget, latin_hypercube_normal, load_scene
+    from gonio.pipeline import config_dir
+
+    budget = instrument_budget()
+    world = _scene(
+        load_scene(config_dir() / "scenes" / f"{REALISTIC_SCENE}.toml"), spec.material, seed
+    )
+    z = latin_hypercube_normal(cfg.realistic_seeds, budget.N_DRAWS, REALISTIC_DRAWS_SEED)[seed]
+    # Uncorrected, the realistic sensor's PRNU alone puts χ²/dof at 1.37 (tests/
+    # test_coverage_realistic.py): a lab records darks and a flat field.
+    phases = CalibrationPhasesConfig(dark=DarkPhaseConfig(count=8), flat=FlatPhaseConfig(count=16))
+    return (
+        budget.world(world, z, seed=4000 + seed),
+        budget.rig(rig),
+        plan.model_copy(update={"calibration": phases}),
+        AutoOperator(),
+    )
+
+
+def _realistic_record(cfg: StudyConfig, rig) -> dict[str, Any]:
+    """What the page states of the realistic rig: its scene, the budget it draws from (and the
+    rig file states), and the simulation stages a drawn world runs."""
+    from gonio.backends import effect_names, instrument_budget
+
+    spec = RunSpec("realistic", cfg.realistic_material, cfg.realistic_plans[0],
+                   cfg.realistic_exposures, cfg.realistic_steps, rig="realistic")  # fmt: skip
+    plan = _plan_config(spec.plan, spec.exposures)
+    world, *_ = _realistic(spec, 0, cfg, rig, plan)
+    return {
+        "scene": REALISTIC_SCENE,
+        "budget": instrument_budget().stated(),
+        "stages": effect_names(world),
+        "light": {
+            "type": world.light.type,
+            "radius_m": world.light.radius_m,
+            "drift_per_hour": world.light.drift_per_hour,
+        },  # fmt: skip
+    }
 
 
 def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
