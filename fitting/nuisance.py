@@ -207,6 +207,31 @@ def _rotate_elevation(w: np.ndarray, arm_phi: np.ndarray, delta) -> np.ndarray: 
     return w * c + np.cross(a, w) * s + a * (np.sum(a * w, axis=-1)[..., None] * (1.0 - c))
 
 
+def _turn_camera(v: np.ndarray, arm_phi_i, arm_phi_o, delta_rad: dict, kinematics: str):  # noqa: ANN001
+    """Vectors v (N, 3) carried by the camera arm when its angles are off by `delta_rad`: its
+    elevation about the axis normal to its plane, then its azimuth about the vertical."""
+    d_o = delta_rad.get("camera_theta", 0.0)
+    if kinematics == "inplane":
+        # positive camera elevation is across the normal from the light (the specular side)
+        side = np.where(np.cos(arm_phi_o - arm_phi_i) < 0.0, 1.0, -1.0)
+        d_o = np.asarray(d_o, dtype=np.float64) * side
+    v = _rotate_elevation(v, arm_phi_o, d_o)
+    d_phi = np.asarray(delta_rad.get("camera_phi", 0.0), dtype=np.float64)
+    if np.any(d_phi != 0):
+        c, s = np.cos(d_phi)[..., None], np.sin(d_phi)[..., None]
+        x, y = v[..., 0:1], v[..., 1:2]
+        v = np.concatenate([x * c - y * s, x * s + y * c, v[..., 2:3]], axis=-1)
+    return v
+
+
+def _into_sample(v: np.ndarray, delta_rad: dict) -> np.ndarray:
+    tx = np.asarray(delta_rad.get("tilt_x", 0.0), dtype=np.float64)
+    ty = np.asarray(delta_rad.get("tilt_y", 0.0), dtype=np.float64)
+    if np.any(tx != 0) or np.any(ty != 0):
+        return _untilt(v, tx, ty)
+    return v
+
+
 def shifted_directions(
     wi: np.ndarray,
     wo: np.ndarray,
@@ -219,49 +244,44 @@ def shifted_directions(
     `delta_rad` ({arm in ARMS: radians, scalar, (W, 1) or (W, N)}; module docstring). Each arm
     turns about the axis normal to its own vertical plane, whose azimuth `arm_phi_*` is the
     arm's (the pose's, also where the arm stands on the normal), not the pixel's."""
-    d_i = delta_rad.get("light_theta", 0.0)
-    d_o = delta_rad.get("camera_theta", 0.0)
-    if kinematics == "inplane":
-        # positive camera elevation is across the normal from the light (the specular side)
-        side = np.where(np.cos(arm_phi_o - arm_phi_i) < 0.0, 1.0, -1.0)
-        d_o = np.asarray(d_o, dtype=np.float64) * side
-    wi = _rotate_elevation(wi, arm_phi_i, d_i)
-    wo = _rotate_elevation(wo, arm_phi_o, d_o)
-    d_phi = np.asarray(delta_rad.get("camera_phi", 0.0), dtype=np.float64)
-    if np.any(d_phi != 0):
-        c, s = np.cos(d_phi)[..., None], np.sin(d_phi)[..., None]
-        x, y = wo[..., 0:1], wo[..., 1:2]
-        wo = np.concatenate([x * c - y * s, x * s + y * c, wo[..., 2:3]], axis=-1)
-    tx = np.asarray(delta_rad.get("tilt_x", 0.0), dtype=np.float64)
-    ty = np.asarray(delta_rad.get("tilt_y", 0.0), dtype=np.float64)
-    if np.any(tx != 0) or np.any(ty != 0):
-        wi, wo = _untilt(wi, tx, ty), _untilt(wo, tx, ty)
-    return wi, wo
+    wi = _rotate_elevation(wi, arm_phi_i, delta_rad.get("light_theta", 0.0))
+    wo = _turn_camera(wo, arm_phi_i, arm_phi_o, delta_rad, kinematics)
+    return _into_sample(wi, delta_rad), _into_sample(wo, delta_rad)
 
 
 def measured_geometry(
     wi: np.ndarray, wo: np.ndarray, rows: dict, delta: dict, kinematics: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(ω_i, ω_o, irradiance ratio) of the samples in the world the nuisances describe: the
-    lamp `delta["light_r"]` metres further along its arm (each pixel's surface point p, from
-    the camera's position and the recorded ω_o, then sees it at L' − p), then the arms turned
-    (:func:`shifted_directions`). The ratio is what calibration's irradiance I cos θ_i / r² of
-    the recorded geometry misses: cos θ_i' / cos θ_i · |L − p|² / |L' − p|²; the measured f is
-    the BRDF at (ω_i', ω_o') times it."""
-    ratio = 1.0
-    wi_new = wi
+    """(ω_i, ω_o, irradiance ratio) of the samples in the world the nuisances describe. The
+    ratio is what calibration's irradiance I cos θ_i / r² of the recorded geometry misses; the
+    measured f is the BRDF at (ω_i', ω_o') times it.
+
+    With the arms' positions (calibration recorded them): each pixel's ray, from the camera's
+    position along −ω_o, meets the sample at p; the lamp moves `delta["light_r"]` metres along
+    its arm and turns with its elevation, the camera and its rays turn with theirs, so the
+    pixel meets the sample at p' (a camera turned about the sample's centre sees its points
+    turned too: ~|p|·δ, which moves ω_i by |p|·δ/r) and sees the lamp at L' − p':
+    ratio = cos θ_i' / cos θ_i · |L − p|² / |L' − p'|². Without them, the directions alone
+    turn (:func:`shifted_directions`) and the ratio is cos θ_i' / cos θ_i."""
+    if "light_pos" not in rows:
+        wi2, wo2 = shifted_directions(wi, wo, rows["phi_i"], rows["phi_o"], delta, kinematics)
+        return wi2, wo2, wi2[..., 2] / wi[:, 2]
+    light, cam = rows["light_pos"], rows["cam_pos"]
+    p = cam - (cam[:, 2] / wo[:, 2])[:, None] * wo  # the pixel's point on z = 0
+    light_new = light
     d_r = delta.get("light_r")
-    if d_r is not None and "light_pos" in rows:
-        light, cam = rows["light_pos"], rows["cam_pos"]
-        p = cam - (cam[:, 2] / wo[:, 2])[:, None] * wo  # the pixel's point on z = 0
+    if d_r is not None:
         r = np.linalg.norm(light, axis=1)
         light_new = light * (1.0 + np.asarray(d_r, dtype=np.float64) / r)[..., None]
-        to_new, to_old = light_new - p, light - p
-        r2_new, r2_old = np.sum(to_new**2, axis=-1), np.sum(to_old**2, axis=-1)
-        wi_new = to_new / np.sqrt(r2_new)[..., None]
-        ratio = r2_old / r2_new
-    wi2, wo2 = shifted_directions(wi_new, wo, rows["phi_i"], rows["phi_o"], delta, kinematics)
-    return wi2, wo2, ratio * wi2[..., 2] / wi[:, 2]
+    light_new = _rotate_elevation(light_new, rows["phi_i"], delta.get("light_theta", 0.0))
+    cam_new = _turn_camera(cam, rows["phi_i"], rows["phi_o"], delta, kinematics)
+    ray = _turn_camera(-wo, rows["phi_i"], rows["phi_o"], delta, kinematics)
+    p_new = cam_new - (cam_new[..., 2] / ray[..., 2])[..., None] * ray
+    to_new, to_old = light_new - p_new, light - p
+    r2_new, r2_old = np.sum(to_new**2, axis=-1), np.sum(to_old**2, axis=-1)
+    wi2 = _into_sample(to_new / np.sqrt(r2_new)[..., None], delta)
+    wo2 = _into_sample(-ray, delta)
+    return wi2, wo2, r2_old / r2_new * wi2[..., 2] / wi[:, 2]
 
 
 def arm_deltas(rows: dict[str, np.ndarray], natural_rad: dict[str, np.ndarray]) -> dict:
