@@ -335,7 +335,7 @@ def _plan_on_realistic_rig(rows, param, rel, material, rig_cfg, stated, results)
             f"±{100 * floor:.3g}% (the systematic part of the 68 % interval on the study's "
             f"largest realistic plan, {top['plan']} with {top['poses']} poses, over "
             f"{top['n']} rigs), which more poses or longer exposures cannot average away"
-            + ("; " + " ".join(words) if words else "")
+            + (". " + " ".join(words).rstrip(".") if words else "")
         )
     # Both the quoted uncertainty and the error the rigs really showed must meet the target
     # (a small plan's intervals can be too narrow: the study's page says where).
