@@ -439,9 +439,19 @@ _INT_COLUMNS = (
 )
 
 
+#: Columns a CSV from before the realistic rig lacks, with what its rows were: the ideal rig,
+#: no systematic part. Such a file still reads (and plans from its ideal rows).
+_LATER_COLUMNS = {"rig": "ideal", "rel_sys_68": 0.0}
+
+
 def read_csv(path: Path) -> list[dict[str, Any]]:
     """The rows as the sweep made them: text, integer and float columns."""
-    return read_typed_rows(path, _TEXT_COLUMNS, _INT_COLUMNS, required=CSV_COLUMNS)
+    required = [c for c in CSV_COLUMNS if c not in _LATER_COLUMNS]
+    rows = read_typed_rows(path, _TEXT_COLUMNS, _INT_COLUMNS, required=required)
+    for r in rows:
+        for column, value in _LATER_COLUMNS.items():
+            r.setdefault(column, value)
+    return rows
 
 
 def config_fields(cfg: StudyConfig) -> dict[str, Any]:
