@@ -235,11 +235,9 @@ def test_light_distance_error_moves_f_by_minus_two_delta_over_r(tmp_path) -> Non
     )
     a, b, good = _paired(exact, far)
     good &= exact.f[a] > 0
-    effect = (far.f[b][good] / exact.f[a][good] - 1.0) / (-2.0 * LIGHT_DISTANCE_ERROR_M / r)
-    assert good.sum() > 100
-    print(f"light distance +{LIGHT_DISTANCE_ERROR_M * 1e3:.0f} mm: measured/predicted effect "
-          f"median {np.median(effect):.3f} over {good.sum()} samples")  # fmt: skip
-    assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
+    _matches_first_order(f"light distance +{LIGHT_DISTANCE_ERROR_M * 1e3:.0f} mm",
+                         far.f[b] / exact.f[a], np.full(a.size, -2.0 * LIGHT_DISTANCE_ERROR_M / r),
+                         good, 100)  # fmt: skip
 
 
 #: 5 % from centre to corner: an LED flat panel's uniformity spec (integrating spheres ≤ 1 %).
@@ -273,6 +271,22 @@ def test_flat_source_falloff_moves_f_by_the_inverse_profile(tmp_path) -> None:
     print(f"flat falloff {FLAT_FALLOFF:.0%}: measured/predicted median {np.median(effect):.3f}"
           f" over {far.sum()} samples")  # fmt: skip
     assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
+
+
+def _surface_point(origin: np.ndarray, ray: np.ndarray) -> np.ndarray:
+    """Where rays from `origin` along `ray` (each (N, 3)) meet the sample plane z = 0."""
+    return origin - (origin[:, 2] / ray[:, 2])[:, None] * ray
+
+
+def _matches_first_order(label: str, ratio, predicted, keep, min_samples: int) -> None:  # noqa: ANN001
+    """The issue's bound: over the `keep` samples, the median of the measured effect (ratio − 1)
+    over the predicted one is 1 within 20 %; prints both so a run shows the figures."""
+    effect = (ratio[keep] - 1.0) / predicted[keep]
+    assert keep.sum() > min_samples, (label, keep.sum())
+    size = 100 * np.abs(predicted[keep])
+    print(f"{label}: predicted {size.min():.2f}–{size.max():.2f} %, measured/predicted median "
+          f"{np.median(effect):.3f} over {keep.sum()} samples")  # fmt: skip
+    assert 0.8 <= np.median(effect) <= 1.2, (label, np.median(effect))
 
 
 def _believed_rays(run_dir, table, rows):
@@ -321,9 +335,9 @@ def test_camera_distance_error_moves_f_by_the_irradiance_at_the_true_point(tmp_p
     a, b, good = _paired(exact, far)
     good &= exact.f[a] > 0
     cam, lamp, d = _believed_rays(tmp_path / "exact", exact, a)
-    x_b = cam - (cam[:, 2] / d[:, 2])[:, None] * d
+    x_b = _surface_point(cam, d)
     cam_t = cam * (1.0 + CAMERA_DISTANCE_ERROR_M / np.linalg.norm(cam, axis=1))[:, None]
-    x_t = cam_t - (cam_t[:, 2] / d[:, 2])[:, None] * d
+    x_t = _surface_point(cam_t, d)
 
     def irradiance(x):
         v = lamp - x
@@ -332,13 +346,8 @@ def test_camera_distance_error_moves_f_by_the_irradiance_at_the_true_point(tmp_p
     predicted = irradiance(x_t) / irradiance(x_b) - 1.0
     # where the prediction (≥ 0.1 %) stands well above DN rounding
     big = good & (np.abs(predicted) > 1e-3)
-    effect = (far.f[b][big] / exact.f[a][big] - 1.0) / predicted[big]
-    assert big.sum() > 50, big.sum()
-    size = 100 * np.abs(predicted[big])
-    print(f"camera distance +{CAMERA_DISTANCE_ERROR_M * 1e3:.0f} mm: predicted effects "
-          f"{size.min():.2f}–{size.max():.2f} %, measured/predicted median "
-          f"{np.median(effect):.3f} over {big.sum()} samples")  # fmt: skip
-    assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
+    _matches_first_order(f"camera distance +{CAMERA_DISTANCE_ERROR_M * 1e3:.0f} mm",
+                         far.f[b] / exact.f[a], predicted, big, 50)  # fmt: skip
 
 
 #: 5 % at 3° off the axis: a halogen lamp behind a condenser (lamp makers' beam plots: 1–5 % over
@@ -361,18 +370,15 @@ def test_beam_nonuniformity_moves_f_by_the_lamps_profile_at_each_point(tmp_path)
     a, b, good = _paired(exact, beamed)
     good &= exact.f[a] > 0
     cam, lamp, d = _believed_rays(tmp_path / "exact", exact, a)
-    x = cam - (cam[:, 2] / d[:, 2])[:, None] * d
+    x = _surface_point(cam, d)
     to_x = (x - lamp) / np.linalg.norm(x - lamp, axis=1)[:, None]
     axis = -lamp / np.linalg.norm(lamp, axis=1)[:, None]
     psi_deg = np.degrees(np.arccos(np.clip(np.sum(to_x * axis, axis=1), -1.0, 1.0)))
     predicted = -BEAM_FALLOFF * (psi_deg / BEAM_AT_DEG) ** 2
     big = good & (np.abs(predicted) > 1e-3)  # well above DN rounding
-    effect = (beamed.f[b][big] / exact.f[a][big] - 1.0) / predicted[big]
-    assert big.sum() > 100, big.sum()
-    print(f"beam falloff {BEAM_FALLOFF:.0%} at {BEAM_AT_DEG:g}°: ψ up to "
-          f"{psi_deg[big].max():.2f}°, measured/predicted median {np.median(effect):.3f} over "
-          f"{big.sum()} samples")  # fmt: skip
-    assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
+    _matches_first_order(f"beam falloff {BEAM_FALLOFF:.0%} at {BEAM_AT_DEG:g}° (ψ up to "
+                         f"{psi_deg[big].max():.2f}°)", beamed.f[b] / exact.f[a], predicted, big,
+                         100)  # fmt: skip
 
 
 #: A 0.5 mm dome over the 50 mm sample: a curled sheet (paper, foil: 0.1–1 mm); its edges lean
@@ -397,17 +403,12 @@ def test_sample_bow_moves_f_by_the_tilt_of_the_local_normal(tmp_path) -> None:
     a, b, good = _paired(flat, bowed)
     good &= flat.f[a] > 0
     cam, lamp, d = _believed_rays(tmp_path / "flat", flat, a)
-    x = cam - (cam[:, 2] / d[:, 2])[:, None] * d
+    x = _surface_point(cam, d)
     wi = (lamp - x) / np.linalg.norm(lamp - x, axis=1)[:, None]
     h_x, h_y = -2.0 * BOW_M * x[:, 0] / half**2, -2.0 * BOW_M * x[:, 1] / half**2
     predicted = -(h_x * wi[:, 0] + h_y * wi[:, 1]) / wi[:, 2]
     big = good & (np.abs(predicted) > 1e-3)  # well above DN rounding
-    effect = (bowed.f[b][big] / flat.f[a][big] - 1.0) / predicted[big]
-    assert big.sum() > 100, big.sum()
-    size = 100 * np.abs(predicted[big]).max()
-    print(f"bow {BOW_M * 1e3:g} mm: predicted effects up to {size:.1f} %, measured/predicted "
-          f"median {np.median(effect):.3f} over {big.sum()} samples")  # fmt: skip
-    assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
+    _matches_first_order(f"bow {BOW_M * 1e3:g} mm", bowed.f[b] / flat.f[a], predicted, big, 100)
 
 
 #: The lamp 2 % brighter than its certificate: a certificate's k = 2 uncertainty is 1–3 %
@@ -430,10 +431,8 @@ def test_certificate_error_moves_f_by_the_lamps_true_over_certified_intensity(tm
     off = _acquire(tmp_path / "off", 0.0, light=bright)
     a, b, good = _paired(exact, off)
     good &= exact.f[a] > 0
-    effect = (off.f[b][good] / exact.f[a][good] - 1.0) / CERT_ERROR
-    assert good.sum() > 100
-    print(f"certificate +{CERT_ERROR:.0%}: measured/predicted median {np.median(effect):.3f}")
-    assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
+    _matches_first_order(f"certificate +{CERT_ERROR:.0%}", off.f[b] / exact.f[a],
+                         np.full(a.size, CERT_ERROR), good, 100)  # fmt: skip
 
 
 #: 0.02 W m⁻² sr⁻¹ of ambient light: a lit room around an open rig (a dark lab with black
@@ -457,19 +456,15 @@ def test_stray_light_moves_f_by_pi_l_over_the_lamps_irradiance(tmp_path) -> None
     a, b, good = _paired(exact, lit)
     good &= (exact.f[a] > 0) & (exact.channel[a].astype(str) == "G")
     cam, lamp, d = _believed_rays(tmp_path / "exact", exact, a)
-    x = cam - (cam[:, 2] / d[:, 2])[:, None] * d
+    x = _surface_point(cam, d)
     to_lamp = lamp - x
     r2 = np.sum(to_lamp**2, axis=1)
     cos_i = to_lamp[:, 2] / np.sqrt(r2)
     intensity = world_scene(load_scene(REPO / "configs" / "scenes" / "demo.toml"), rig)
     i_g = intensity.light.intensity_W_sr[1]
     predicted = np.pi * STRAY_RADIANCE * r2 / (i_g * cos_i)
-    effect = (lit.f[b][good] / exact.f[a][good] - 1.0) / predicted[good]
-    assert good.sum() > 50
-    print(f"stray light {STRAY_RADIANCE} W/m²/sr: predicted {100 * predicted[good].min():.2f}–"
-          f"{100 * predicted[good].max():.2f} %, measured/predicted median "
-          f"{np.median(effect):.3f}")  # fmt: skip
-    assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
+    _matches_first_order(f"stray light {STRAY_RADIANCE} W/m²/sr", lit.f[b] / exact.f[a],
+                         predicted, good, 50)  # fmt: skip
 
 
 #: A 5 mm lamp disk (realistic.toml's) over a glossy Beckmann lobe (m = 0.05, where a lamp's size
@@ -520,7 +515,7 @@ def test_lamp_size_smooths_a_glossy_lobe_by_its_curvature(tmp_path) -> None:
     a, b, good = _paired(point, area)
     good &= (point.f[a] > 0) & (point.channel[a].astype(str) == "G")
     cam, lamp, d = _believed_rays(tmp_path / "point", point, a)
-    x = cam - (cam[:, 2] / d[:, 2])[:, None] * d
+    x = _surface_point(cam, d)
     wo = -d
     wi = (lamp - x) / np.linalg.norm(lamp - x, axis=1)[:, None]
     rho = LAMP_RADIUS_M / np.linalg.norm(lamp - x, axis=1)
@@ -551,12 +546,8 @@ def test_lamp_size_smooths_a_glossy_lobe_by_its_curvature(tmp_path) -> None:
     share = 1.0 - (1 - GLOSSY_W) * GLOSSY_RHO / np.pi / point.f[a]
     predicted = cos_psi * (1.0 + share * lobe_rel) - 1.0
     big = good & (np.abs(predicted) > 2e-3) & (share > 0.5)  # near the peak, well above DN
-    effect = (area.f[b][big] / point.f[a][big] - 1.0) / predicted[big]
-    assert big.sum() > 20, big.sum()
-    print(f"lamp disk {LAMP_RADIUS_M * 1e3:g} mm on m = {GLOSSY_M}: predicted "
-          f"{100 * predicted[big].min():.2f}–{100 * predicted[big].max():.2f} %, measured/"
-          f"predicted median {np.median(effect):.3f} over {big.sum()} samples")  # fmt: skip
-    assert 0.8 <= np.median(effect) <= 1.2, np.median(effect)
+    _matches_first_order(f"lamp disk {LAMP_RADIUS_M * 1e3:g} mm on m = {GLOSSY_M}",
+                         area.f[b] / point.f[a], predicted, big, 20)  # fmt: skip
 
 
 def test_encoder_quantisation_puts_every_arm_on_a_whole_tick(tmp_path) -> None:

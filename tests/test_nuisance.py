@@ -18,16 +18,10 @@ import pytest
 from fitting.directions import isotropic_gonio_directions, spherical_to_vector, vector_to_spherical
 from fitting.fit import FitOptions, fit_samples
 from fitting.nuisance import shared_errors, shifted_directions
-from simulator.scene import BlendMaterial, DiffuseMaterial, RoughConductorMaterial
 from simulator.truth import direct_samples, material_reference_parameters
+from tests.test_budget import MATERIAL, OPTIONS  # the same blend and fitted model
 
 REPO = Path(__file__).resolve().parent.parent
-MATERIAL = BlendMaterial(
-    weight=0.25,
-    first=DiffuseMaterial(reflectance=(0.6, 0.45, 0.3)),
-    second=RoughConductorMaterial(alpha=0.2, conductor="none"),
-)
-OPTIONS = {"fresnel": "none", "shadowing": "smith-rational", "distribution": "beckmann"}
 
 
 def test_an_arm_zero_turns_directions_about_the_arms_own_axis() -> None:
@@ -198,7 +192,7 @@ def test_the_nuisance_model_moves_f_as_the_simulated_world_does(tmp_path) -> Non
     moving, ~0.1 % of the effect, and DN rounding), and the residual below a tenth of the
     effect. The model's f is gonio's Torrance-Sparrow at the scene's own parameters."""
     from fitting import models
-    from fitting.nuisance import arm_deltas, arm_rows, measured_geometry
+    from fitting.nuisance import arm_deltas, arm_rows, measured_geometry, to_si
     from simulator.scene import GeometryTruth, load_scene
     from simulator.truth import reference_parameters
     from tests.test_instrument_errors import _acquire, _paired
@@ -220,8 +214,7 @@ def test_the_nuisance_model_moves_f_as_the_simulated_world_does(tmp_path) -> Non
             good &= cam[:, 2] / np.linalg.norm(cam, axis=1) < math.cos(math.radians(2.6))
         idx = a[good]
         sub = {k: v[idx] for k, v in rows.items()}
-        si = 1e-3 if name == "light_distance_mm" else math.pi / 180  # natural units → SI
-        delta = {k: v[0] for k, v in arm_deltas(sub, {name: np.array([value * si])}).items()}
+        delta = {k: v[0] for k, v in arm_deltas(sub, {name: to_si(name, [value])}).items()}
         wi, wo, ratio = measured_geometry(base.wi[idx], base.wo[idx], sub, delta, "two-arm")
         params = {
             p: np.full(idx.size, truth[f"{p}_G" if p != "m" else p]) for p in ("kd", "ks", "m")
