@@ -127,6 +127,22 @@ BEAM_HALF_FOV_DEG = 30.0
 BEAM_TEXELS = 512
 
 
+def _texel_centres(n: int) -> np.ndarray:
+    """Centres of n texels spanning [−1, 1] (a bitmap's uv ∈ [0, 1] mapped to 2uv − 1)."""
+    return 2.0 * (np.arange(n) + 0.5) / n - 1.0
+
+
+def _bitmap_texture(mi, data: np.ndarray) -> dict:  # noqa: ANN001 - the mitsuba module
+    """A Mitsuba bitmap texture of raw float values, bilinear and clamped at its edges."""
+    return {
+        "type": "bitmap",
+        "bitmap": mi.Bitmap(data),
+        "raw": True,
+        "filter_type": "bilinear",
+        "wrap_mode": "clamp",
+    }
+
+
 def beam_texture(light) -> np.ndarray:
     """The `projector` texture that makes a pinhole lamp of radiant intensity
     I(ψ) = I₀ · light.beam_profile(ψ). Mitsuba's projector (src/emitters/projector.cpp) returns
@@ -134,7 +150,7 @@ def beam_texture(light) -> np.ndarray:
     constant texture lights a plane at z = 1 evenly), so T = I(ψ) cos³ψ / π. Texel centres map
     to tan ψ_x,y = (2u − 1) tan(fov/2)."""
     n = BEAM_TEXELS
-    t = (2.0 * (np.arange(n) + 0.5) / n - 1.0) * math.tan(math.radians(BEAM_HALF_FOV_DEG))
+    t = _texel_centres(n) * math.tan(math.radians(BEAM_HALF_FOV_DEG))
     tx, ty = np.meshgrid(t, t)
     cos_psi = 1.0 / np.sqrt(1.0 + tx**2 + ty**2)
     rel = light.beam_profile(np.arccos(cos_psi)) * cos_psi**3 / math.pi
@@ -154,9 +170,8 @@ def normal_texture(sagitta_m: float, half_extent_m: tuple[float, float]) -> np.n
     from simulator.scene import bow_slopes
 
     hx, hy = half_extent_m
-    n = NORMAL_TEXELS
-    x = (2.0 * (np.arange(n) + 0.5) / n - 1.0) * hx
-    y = (2.0 * (np.arange(n) + 0.5) / n - 1.0) * hy
+    x = _texel_centres(NORMAL_TEXELS) * hx
+    y = _texel_centres(NORMAL_TEXELS) * hy
     gx, gy = bow_slopes(sagitta_m, min(hx, hy), *np.meshgrid(x, y))
     normal = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
@@ -380,17 +395,8 @@ class Renderer:
         bow = self.scene.geometry.sample_bow_m
         if not bow:
             return desc
-        return {
-            "type": "normalmap",
-            "normalmap": {
-                "type": "bitmap",
-                "bitmap": self._mi.Bitmap(normal_texture(bow, self.sample_half_extent_m)),
-                "raw": True,
-                "filter_type": "bilinear",
-                "wrap_mode": "clamp",
-            },
-            "bsdf": desc,
-        }
+        texture = normal_texture(bow, self.sample_half_extent_m)
+        return {"type": "normalmap", "normalmap": _bitmap_texture(self._mi, texture), "bsdf": desc}
 
     def _light_dict(self) -> dict:
         light = self.scene.light
@@ -403,13 +409,7 @@ class Renderer:
                 "to_world": dummy,
                 "fov": 2.0 * BEAM_HALF_FOV_DEG,
                 "fov_axis": "x",
-                "irradiance": {
-                    "type": "bitmap",
-                    "bitmap": self._mi.Bitmap(beam_texture(light)),
-                    "raw": True,
-                    "filter_type": "bilinear",
-                    "wrap_mode": "clamp",
-                },
+                "irradiance": _bitmap_texture(self._mi, beam_texture(light)),
             }
         if light.type == "point":
             return {
@@ -482,10 +482,7 @@ class Renderer:
                 tw = tw.scale([light.radius_m, light.radius_m, 1.0])
             p["light.to_world"] = mi.Transform4f(tw) if hasattr(mi, "Transform4f") else tw
         scale_in_scene = self.scene.stray_light is not None
-        if scale_in_scene and light.beam_falloff:
-            texture = beam_texture(light) * np.float32(intensity_scale)
-            p["light.irradiance.data"] = mi.TensorXf(texture)
-        elif scale_in_scene:
+        if scale_in_scene:  # never with a beam profile (simulator.scene.Scene refuses it)
             key, base = (
                 ("light.emitter.radiance.value", light.radiance_W_m2_sr)
                 if light.type == "area"

@@ -421,6 +421,18 @@ class Scene(Strict):
     flat_source_falloff: float = Field(0.0, ge=0, lt=1)
     seed: int = 0
 
+    @model_validator(mode="after")
+    def _beam_without_stray_light(self) -> Scene:
+        # With stray light the lamp's level must change in the loaded scene (the ambient term
+        # does not scale with it), and Mitsuba's projector takes no new intensity once loaded
+        # (measured: a changed `scale` or texture leaves the render as it was).
+        if self.light.beam_falloff > 0 and self.stray_light is not None:
+            raise ValueError(
+                "light.beam_falloff cannot be combined with [stray_light] (the lamp's level "
+                "could not change in the render); leave one of them out"
+            )
+        return self
+
 
 def _resolve_material_paths(material, base: Path) -> None:
     """Make ``measured`` filenames absolute, in place: ``data:REL`` through the data resolver

@@ -345,3 +345,18 @@ def test_planned_path_depth_loses_less_than_the_noise_target():
     a, b = r.render(light, CAM).mean(), deep.render(light, CAM).mean()
     assert b >= a * (1 - 1e-6)  # deeper paths only add energy (up to sampling differences)
     assert (b - a) / b <= scene.render.target_rel_noise
+
+
+def test_a_beam_profile_with_stray_light_is_refused():
+    """Mitsuba's projector takes no new intensity once loaded, and with stray light the lamp's
+    level must change inside the scene: the combination is refused when the scene is read."""
+    import pydantic
+
+    from simulator.scene import Scene
+
+    data = {"light": {"type": "point", "beam_falloff": 0.05},
+            "stray_light": {"radiance_W_m2_sr": [0.01, 0.01, 0.01]}}  # fmt: skip
+    with pytest.raises(pydantic.ValidationError, match="beam_falloff cannot be combined"):
+        Scene.model_validate(data)
+    Scene.model_validate({"light": data["light"]})  # either alone is fine
+    Scene.model_validate({"stray_light": data["stray_light"]})
