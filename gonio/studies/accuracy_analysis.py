@@ -267,20 +267,21 @@ _AMPLITUDE_PREFIXES = ("kd", "ks")
 
 def shared_scale_floor(rig, param: str) -> tuple[float, str] | None:  # noqa: ANN001 - RigConfig
     """The relative error no plan can go below on `param` because of the rig's shared scale
-    (its reference target's certificate, or the lamp's when there is no target), and where that
-    number comes from; None for a shape parameter or a rig that states no such uncertainty."""
+    (`shared_scale_sigma`: its reference target's certificate, or the lamp's certificate and
+    distance when there is no target), and where that number comes from; None for a shape
+    parameter or a rig that states no such uncertainty."""
     if not param.startswith(_AMPLITUDE_PREFIXES):
         return None
-    if rig.reference is not None:
-        rel, source = rig.reference.rel_sigma, "the reference target's certificate ([reference])"
-    elif rig.light.intensity_rel_sigma is not None:
-        rel, source = (
-            rig.light.intensity_rel_sigma,
-            "the lamp's certificate (light.intensity_rel_sigma)",
-        )
-    else:
+    rel = shared_scale_sigma(rig)
+    if not rel:
         return None
-    return (float(rel), source) if rel > 0 else None
+    source = (
+        "the reference target's certificate ([reference])"
+        if rig.reference is not None
+        else "the lamp's certificate and distance (light.intensity_rel_sigma, "
+        "geometry.light_distance_sigma_m)"
+    )
+    return float(rel), source
 
 
 def systematic_floor(rows: list[dict[str, Any]], param: str) -> dict[str, Any] | None:
