@@ -33,7 +33,7 @@ import numpy as np
 from fitting import models
 from fitting.budget import add_systematic, left_out_words, read_budget
 from fitting.likelihood import Likelihood, dark_snr_of
-from fitting.lsq import fit_least_squares
+from fitting.lsq import fit_least_squares, polish_in_blocks
 from fitting.mcmc import (
     ChainFile,
     ConvergenceTarget,
@@ -245,9 +245,7 @@ def fit_samples(
         # streamed pass at the least-squares optimum), then fit the corrected bins.
         table, eps_corrected = _correct_binning(table, lik, lsq.x, opt.binned_source)
         _model, channels, space, lik = _setup(table, opt)
-        lsq = fit_least_squares(
-            lik, weighting=opt.weighting, loss=opt.loss, starts=lsq.x[None, :], seed=opt.seed
-        )
+        lsq = _polish(lik, lsq.x, opt, len(table))
     # The fractional discrepancy scales with the least-squares prediction, frozen (see
     # fitting.likelihood: a θ-dependent scale rewards overshooting, a measured one biases).
     lik.set_discrepancy_reference(lsq.x)
@@ -339,7 +337,17 @@ def _search_then_polish(table: SampleTable, lik: Likelihood, opt: FitOptions):  
     keep[pick] = True
     *_, sub = _setup(table.select(keep), opt)
     search = fit_least_squares(sub, n_starts=opt.n_starts, **kw)
-    return fit_least_squares(lik, starts=search.x[None, :], **kw)
+    return _polish(lik, search.x, opt, len(table))
+
+
+def _polish(lik: Likelihood, x0: np.ndarray, opt: FitOptions, rows: int):  # noqa: ANN202
+    """Least squares from the one start `x0`, in the optimum's basin: above SEARCH_ROWS rows
+    on normal equations summed over blocks of rows (fitting.lsq.polish_in_blocks: the solver's
+    per-row arrays, ~5 copies of the n × k Jacobian in least_squares, are never held)."""
+    if rows > SEARCH_ROWS and (opt.loss or "soft_l1") in ("soft_l1", "linear"):
+        return polish_in_blocks(lik, x0, weighting=opt.weighting, loss=opt.loss)
+    kw = {"weighting": opt.weighting, "loss": opt.loss, "seed": opt.seed}
+    return fit_least_squares(lik, starts=x0[None, :], **kw)
 
 
 def _with_budget(space, draws, x_map, model, table) -> tuple[dict, list[str]]:  # noqa: ANN001

@@ -39,7 +39,7 @@ finite for any used sample.
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -70,6 +70,12 @@ def dark_snr_of(metadata: dict[str, str]) -> float:
 
 
 _LN_2PI = float(np.log(2 * np.pi))
+#: Model values held at once by one likelihood pass: walkers × rows. A batch of θ is split
+#: into passes of at most this many (W, N) elements, so every temporary of a pass is ≤ 32 MB
+#: whatever the table's size: 32 walkers over 10⁶ rows would otherwise hold 256 MB per array
+#: (the sandwich's 73-point stencil, 584 MB), several at once. Each pass is still millions of
+#: elements, so the kernels' per-call cost stays negligible.
+PASS_ELEMENTS = 4_000_000
 
 
 @dataclass(frozen=True)
@@ -107,6 +113,21 @@ class ChannelData:
     @cached_property
     def sigma2(self) -> np.ndarray:
         return np.ascontiguousarray(self.sigma**2)
+
+
+def _weighted(d: ChannelData, fm: np.ndarray, weighting: str) -> np.ndarray:
+    """Residuals (W, n) of ``d``'s exact rows for their model values ``fm`` (W, n).
+
+    ``sigma``: r = (f − f̂)/σ.  ``ngan``: Ngan et al. 2005's metric (DESIGN §6) — plain L2 on
+    f·cos θ_i weighted by sin θ_i sin θ_o, i.e. r = √(sin θ_i sin θ_o) · (f − f̂) cos θ_i."""
+    ex = d.exact
+    diff = d.f[ex] - fm
+    if weighting == "sigma":
+        return diff / d.sigma[ex]
+    if weighting == "ngan":
+        w = np.sqrt(np.abs(np.sin(d.theta_i[ex]) * np.sin(d.theta_o[ex])))
+        return w * diff * np.cos(d.theta_i[ex])
+    raise ValueError(f"weighting {weighting!r}: use 'sigma' or 'ngan'")
 
 
 class Likelihood:
@@ -216,17 +237,20 @@ class Likelihood:
         """f̃ for channel i: frozen (N,) or the prediction (W, N)."""
         return fm if self._f_ref is None else self._f_ref[i]
 
-    def predict(self, theta: np.ndarray) -> list[np.ndarray]:
-        """Model values per channel, each (W, N_c), for θ (W, D) in the sampled space."""
+    def predict(
+        self, theta: np.ndarray, data: Sequence[ChannelData] | None = None
+    ) -> list[np.ndarray]:
+        """Model values per channel, each (W, N_c), for θ (W, D) in the sampled space; of
+        ``data`` (blocks of rows, :meth:`exact_blocks`) instead of every row when given."""
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
         natural = self.space.natural_dict(theta)
         angles = {n: to_si(n, natural[n]) for n in ANGLE_NUISANCES if n in natural}
         out = []
-        for i, d in enumerate(self.data):
+        for i, d in enumerate(self.data if data is None else data):
             params = self.space.channel_params(natural, d.channel)
             shifts = arm_deltas(d.arm, angles) if angles else {}
             with np.errstate(all="ignore"):
-                if shifts and self._angle_ref is not None:
+                if shifts and self._angle_ref is not None and data is None:
                     fm = self._evaluate_linearised(i, params, shifts)
                 elif any(np.any(v != 0) for v in shifts.values()):
                     fm = self._evaluate_shifted(d, params, shifts)
@@ -298,9 +322,18 @@ class Likelihood:
         f = np.asarray(self.model.evaluate(rows, wi, wo), dtype=np.float64).reshape(n_walkers, n)
         return f * np.broadcast_to(ratio, (n_walkers, n))
 
+    def _per_pass(self, walkers: int) -> int:
+        """How many θ one likelihood pass takes (PASS_ELEMENTS)."""
+        return max(1, min(walkers, PASS_ELEMENTS // max(self.n, 1)))
+
     def log_likelihood(self, theta: np.ndarray) -> np.ndarray:
         """ln L for θ (W, D) → (W,), without the prior. −∞ where the model is not finite."""
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
+        step = self._per_pass(theta.shape[0])
+        if step < theta.shape[0]:
+            return np.concatenate(
+                [self.log_likelihood(theta[i : i + step]) for i in range(0, len(theta), step)]
+            )
         natural = self.space.natural_dict(theta)
         s = self.space.discrepancy(natural)
         total = np.zeros(theta.shape[0])
@@ -364,6 +397,14 @@ class Likelihood:
         order. The same terms as :meth:`log_likelihood` (which sums them), kept apart for
         WAIC / PSIS-LOO (:mod:`fitting.compare`). −∞ where the model is not finite."""
         theta = np.atleast_2d(np.asarray(theta, dtype=np.float64))
+        step = self._per_pass(theta.shape[0])
+        if step < theta.shape[0]:
+            return np.concatenate(
+                [
+                    self.pointwise_log_likelihood(theta[i : i + step])
+                    for i in range(0, len(theta), step)
+                ]
+            )
         natural = self.space.natural_dict(theta)
         s = self.space.discrepancy(natural)
         out = []
@@ -420,22 +461,41 @@ class Likelihood:
 
         ``sigma``: r = (f − f̂)/σ.  ``ngan``: Ngan et al. 2005's metric (DESIGN §6) — plain L2 on
         f·cos θ_i weighted by sin θ_i sin θ_o, i.e. r = √(sin θ_i sin θ_o) · (f − f̂) cos θ_i.
-        Non-finite model values give a large finite residual so the optimiser backs off.
+        Non-finite model values give a large finite residual so the optimiser backs off
+        (likelihood._weighted).
         """
         fms = self.predict(np.atleast_2d(theta))
-        out = []
-        for d, fm in zip(self.data, fms, strict=True):
-            ex = d.exact
-            diff = d.f[ex] - fm[0, ex]
-            if weighting == "sigma":
-                r = diff / d.sigma[ex]
-            elif weighting == "ngan":
-                w = np.sqrt(np.abs(np.sin(d.theta_i[ex]) * np.sin(d.theta_o[ex])))
-                r = w * diff * np.cos(d.theta_i[ex])
-            else:
-                raise ValueError(f"weighting {weighting!r}: use 'sigma' or 'ngan'")
-            out.append(r)
-        r = np.concatenate(out)
+        parts = zip(self.data, fms, strict=True)
+        r = np.concatenate([_weighted(d, fm[:, d.exact], weighting)[0] for d, fm in parts])
+        return np.where(np.isfinite(r), r, 1e10)
+
+    def exact_blocks(self, rows: int) -> Iterator[ChannelData]:
+        """The exact rows in blocks of at most ``rows`` rows of one channel each, in the order of
+        :meth:`residuals`, made one at a time (a block is a copy of its rows only)."""
+        for d in self.data:
+            idx = np.flatnonzero(d.exact)
+            for start in range(0, idx.size, rows):
+                take = idx[start : start + rows]
+                yield ChannelData(
+                    d.channel,
+                    d.wi[take],
+                    d.wo[take],
+                    d.f[take],
+                    d.sigma[take],
+                    d.theta_i[take],
+                    d.theta_o[take],
+                    d.kind[take],
+                    None if d.weight is None else d.weight[take],
+                    None if d.arm is None else {k: v[take] for k, v in d.arm.items()},
+                    None if d.cluster is None else d.cluster[take],
+                )
+
+    def block_residuals(
+        self, theta: np.ndarray, block: ChannelData, weighting: str = "sigma"
+    ) -> np.ndarray:
+        """:meth:`residuals` of one block's rows (all exact) for θ (W, D) → (W, n_block)."""
+        (fm,) = self.predict(np.atleast_2d(theta), [block])
+        r = _weighted(block, fm, weighting)
         return np.where(np.isfinite(r), r, 1e10)
 
     @property

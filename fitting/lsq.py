@@ -12,6 +12,10 @@ The covariance is the Gauss-Newton estimate C = (JᵀJ)⁻¹ of the *plain* resi
 understate or overstate the width, so it is not used. With ``sigma`` weighting the residuals
 are already normalised; with ``ngan`` weighting (no error model) C is scaled by the residual
 variance 2·cost/(n − k).
+
+Large tables (:func:`polish_in_blocks`): from a start already in the optimum's basin, the same
+objective is minimised by Levenberg–Marquardt on normal equations summed over blocks of rows,
+so neither the Jacobian (n × k) nor any per-row array of the solver is ever held whole.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from scipy.optimize import least_squares
 
 from fitting.likelihood import Likelihood
 
-__all__ = ["LsqResult", "fit_least_squares", "start_points", "M_GRID"]
+__all__ = ["LsqResult", "fit_least_squares", "polish_in_blocks", "start_points", "M_GRID"]
 
 M_GRID = (0.03, 0.1, 0.3, 0.6)
 
@@ -91,6 +95,68 @@ def _jacobian(fun, x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return jac
 
 
+@dataclass(frozen=True)
+class _Problem:
+    """What the least squares of a likelihood fits: its free parameters (the discrepancy is
+    held: residuals do not depend on it), the nuisances' prior residuals and the loss."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    free: np.ndarray
+    nuisance: np.ndarray
+    centre: np.ndarray
+    prior_cols: np.ndarray
+    prior_c: np.ndarray
+    prior_sd: np.ndarray
+    loss: str
+    f_scale: float
+
+    @classmethod
+    def of(cls, lik: Likelihood, weighting: str, loss: str | None, f_scale: float | None):
+        space = lik.space
+        lo, hi = space.bounds
+        # The shared errors' nuisance parameters (fitting.nuisance) start at their prior's
+        # centre and, with σ weighting, are fitted with their Gaussian prior as extra residuals
+        # x/σ_prior (the posterior mode: without it the data alone cannot tell a scale from the
+        # amplitudes, and the MCMC's first walkers need the angles' data-given width, often ≪
+        # their prior's). The discrepancy is held: residuals do not depend on it.
+        nuisance = np.array([s.prior_sigma is not None for s in space.specs], dtype=bool)
+        free = np.array([s.base != "discrepancy" for s in space.specs])
+        if weighting != "sigma":
+            free &= ~nuisance
+        centre = np.array([s.prior_center for s in space.specs])
+        if loss is None:
+            loss = "soft_l1" if weighting == "sigma" else "linear"
+        if f_scale is None:
+            f_scale = 3.0 if weighting == "sigma" else 1.0
+        return cls(
+            lo,
+            hi,
+            free,
+            nuisance,
+            centre,
+            np.flatnonzero(nuisance[free]),
+            centre[free & nuisance],
+            np.array([s.prior_sigma or 1.0 for s in space.specs])[free & nuisance],
+            loss,
+            float(f_scale),
+        )
+
+    def prior_residuals(self, xf: np.ndarray) -> np.ndarray:
+        return (xf[..., self.prior_cols] - self.prior_c) / self.prior_sd
+
+    def rho(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(ρ, ρ′) of scipy's loss at z = (r/f_scale)², so cost = ½ f_scale² Σ ρ and the
+        gradient Σ ρ′ r ∂r/∂x: ``linear`` ρ = z; ``soft_l1`` ρ = 2(√(1 + z) − 1)."""
+        z = (r / self.f_scale) ** 2
+        if self.loss == "linear":
+            return z, np.ones_like(z)
+        if self.loss == "soft_l1":
+            t = np.sqrt(1.0 + z)
+            return 2.0 * (t - 1.0), 1.0 / t
+        raise ValueError(f"the blockwise polish supports linear and soft_l1, not {self.loss!r}")
+
+
 def fit_least_squares(
     lik: Likelihood,
     *,
@@ -110,25 +176,10 @@ def fit_least_squares(
     Gaussian data are fitted nearly as by plain L2) for ``sigma`` weighting and to linear for
     ``ngan`` (their published metric is plain L2).
     """
-    space = lik.space
-    lo, hi = space.bounds
-    # The shared errors' nuisance parameters (fitting.nuisance) start at their prior's centre
-    # and, with σ weighting, are fitted with their Gaussian prior as extra residuals x/σ_prior
-    # (the posterior mode: without it the data alone cannot tell a scale from the amplitudes,
-    # and the MCMC's first walkers need the angles' data-given width, often ≪ their prior's).
-    # The discrepancy is held: residuals do not depend on it.
-    nuisance = np.array([s.prior_sigma is not None for s in space.specs], dtype=bool)
-    free = np.array([s.base != "discrepancy" for s in space.specs])
-    if weighting != "sigma":
-        free &= ~nuisance
-    prior_sd = np.array([s.prior_sigma or 1.0 for s in space.specs])[free & nuisance]
-    centre = np.array([s.prior_center for s in space.specs])
-    prior_c = centre[free & nuisance]
-    prior_cols = np.flatnonzero(nuisance[free])
-    if loss is None:
-        loss = "soft_l1" if weighting == "sigma" else "linear"
-    if f_scale is None:
-        f_scale = 3.0 if weighting == "sigma" else 1.0
+    prob = _Problem.of(lik, weighting, loss, f_scale)
+    lo, hi, free, nuisance, centre = prob.lo, prob.hi, prob.free, prob.nuisance, prob.centre
+    prior_cols, prior_c, prior_sd = prob.prior_cols, prob.prior_c, prob.prior_sd
+    loss, f_scale = prob.loss, prob.f_scale
     if starts is None:
         starts = start_points(lik, n_starts, seed)
     starts = np.array(starts, dtype=np.float64)
@@ -180,3 +231,125 @@ def fit_least_squares(
     except np.linalg.LinAlgError:
         cov = None
     return LsqResult(x, cost, cov, costs, n, weighting, bool(success))
+
+
+#: Rows per block of the blockwise polish: a block's k + 1 (forward differences) or 2k (the
+#: covariance's central ones) residual vectors stay a few MB whatever the table's size.
+BLOCK_ROWS = 1 << 16
+
+
+def _accumulate(lik: Likelihood, prob: _Problem, x: np.ndarray, steps: np.ndarray,
+                weighting: str, central: bool):  # fmt: skip
+    """Over every block of rows: (cost at x, gradient g, Gauss–Newton matrix H) with the loss's
+    weights ρ′, by forward differences of signed ``steps`` (k,) per free parameter; or, with
+    ``central``, (Σr² at x, 0, JᵀJ of the plain residuals) by differences between x + steps[0]
+    and x − steps[1] ((2, k), one-sided where a step is 0 at a bound)."""
+    cols = np.flatnonzero(prob.free)
+    k = cols.size
+    if central:
+        batch = np.repeat(x[None, :], 2 * k + 1, axis=0)  # x + h_j, x − h_j, then x
+        batch[np.arange(k), cols] += steps[0]
+        batch[k + np.arange(k), cols] -= steps[1]
+        width = steps[0] + steps[1]
+    else:
+        batch = np.repeat(x[None, :], k + 1, axis=0)  # x, then x + h_j
+        batch[1 + np.arange(k), cols] += steps
+    h_mat = np.zeros((k, k))
+    grad = np.zeros(k)
+    cost = 0.0
+
+    def add(r: np.ndarray) -> None:
+        nonlocal cost
+        if central:
+            jac = (r[:k] - r[k : 2 * k]) / width[:, None]
+            cost += float(np.sum(r[2 * k] ** 2))
+            h_mat[...] += jac @ jac.T
+            return
+        r0 = r[0]
+        jac = (r[1:] - r0) / steps[:, None]
+        rho, w = prob.rho(r0)
+        cost += 0.5 * prob.f_scale**2 * float(np.sum(rho))
+        grad[...] += (jac * w) @ r0
+        h_mat[...] += (jac * w) @ jac.T
+
+    for block in lik.exact_blocks(BLOCK_ROWS):
+        add(lik.block_residuals(batch, block, weighting))
+    if prob.prior_cols.size:
+        add(prob.prior_residuals(batch[:, cols]))
+    return cost, grad, h_mat
+
+
+def polish_in_blocks(
+    lik: Likelihood,
+    x0: np.ndarray,
+    *,
+    weighting: str = "sigma",
+    loss: str | None = None,
+    f_scale: float | None = None,
+    max_iter: int = 100,
+) -> LsqResult:
+    """:func:`fit_least_squares` from the single start ``x0`` (in the optimum's basin), in
+    memory that does not grow with the rows beyond the data: Levenberg–Marquardt on the
+    normal equations (Σ ρ′ JᵀJ) δ = −Σ ρ′ Jᵀr of the same residuals and loss, each sum taken
+    over blocks of BLOCK_ROWS rows (:meth:`Likelihood.exact_blocks`), the block's Jacobian by
+    forward differences with its k + 1 parameter vectors in one model call. Its stationary
+    point is least_squares' (the same gradient vanishes; the ρ″ term least_squares adds only
+    changes the path). Bounds: a step is clipped into the box and a parameter at a bound the
+    gradient pushes outward is held for that step. The covariance is fit_least_squares': the
+    plain residuals' central-difference (JᵀJ)⁻¹, summed the same way."""
+    prob = _Problem.of(lik, weighting, loss, f_scale)
+    free, lo, hi = prob.free, prob.lo[prob.free], prob.hi[prob.free]
+    x = np.array(x0, dtype=np.float64)
+    x[prob.nuisance & ~free] = prob.centre[prob.nuisance & ~free]
+
+    def forward_steps(xf: np.ndarray) -> np.ndarray:
+        h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(xf))  # scipy's 2-point step
+        return np.where(xf + h > hi, -h, h)
+
+    def at(xf: np.ndarray) -> np.ndarray:
+        full = x.copy()
+        full[free] = xf
+        return full
+
+    xf = np.clip(x[free], lo, hi)
+    cost, grad, h_mat = _accumulate(lik, prob, at(xf), forward_steps(xf), weighting, False)
+    lam, success = 1e-3, False
+    for _ in range(max_iter):
+        held = ((xf <= lo) & (grad > 0)) | ((xf >= hi) & (grad < 0))
+        a = h_mat + lam * np.diag(np.diag(h_mat))
+        a[held, :] = a[:, held] = 0.0
+        a[held, held] = 1.0
+        try:
+            step = np.linalg.solve(a, -np.where(held, 0.0, grad))
+        except np.linalg.LinAlgError:
+            lam *= 10.0
+            continue
+        trial = np.clip(xf + step, lo, hi)
+        new = _accumulate(lik, prob, at(trial), forward_steps(trial), weighting, False)
+        if np.isfinite(new[0]) and new[0] <= cost:
+            done = cost - new[0] <= 1e-12 * max(cost, 1e-300) or np.all(
+                np.abs(trial - xf) <= 1e-10 * (np.abs(xf) + 1e-8)
+            )
+            xf, (cost, grad, h_mat) = trial, new
+            lam = max(lam / 10.0, 1e-12)
+            if done:
+                success = True
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e12:
+                success = True  # no step lowers the cost: a minimum to the rounding of the sums
+                break
+    h = 1e-6 * np.maximum(1.0, np.abs(xf))  # _jacobian's steps, one-sided at a bound
+    central = np.stack([np.minimum(xf + h, hi) - xf, xf - np.maximum(xf - h, lo)])
+    r2, _, jtj = _accumulate(lik, prob, at(xf), central, weighting, True)
+    cov = None
+    try:
+        cf = np.linalg.inv(jtj)
+        if weighting != "sigma":
+            cf *= r2 / max(lik.n_exact - int(free.sum()), 1)
+        cov = np.zeros((x.size, x.size))
+        cov[np.ix_(free, free)] = cf
+    except np.linalg.LinAlgError:
+        cov = None
+    return LsqResult(at(xf), cost, cov, [cost], lik.n_exact, weighting, success)

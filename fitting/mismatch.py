@@ -202,15 +202,16 @@ def _stencil_hessian(lik, x: np.ndarray, cols: np.ndarray, step: np.ndarray) -> 
 
 def _scores(lik, x: np.ndarray, cols: np.ndarray, step: np.ndarray) -> np.ndarray:
     """Per-row score ∂ ln L_j/∂x over ``cols`` (n, d) by central differences of the pointwise
-    log-likelihood (censored rows included, as the fit uses them)."""
-    pts = []
+    log-likelihood (censored rows included, as the fit uses them). One parameter's pair of
+    points at a time: the (2, n) pointwise values, not (2d, n), are held at once."""
+    out = np.empty((lik.n, cols.size))
     for a in range(cols.size):
-        for sign in (1, -1):
-            y = x.copy()
-            y[cols[a]] += sign * step[a]
-            pts.append(y)
-    ll = lik.pointwise_log_likelihood(np.array(pts))
-    return ((ll[0::2] - ll[1::2]) / (2 * step[:, None])).T
+        pair = np.repeat(x[None, :], 2, axis=0)
+        pair[0, cols[a]] += step[a]
+        pair[1, cols[a]] -= step[a]
+        ll = lik.pointwise_log_likelihood(pair)
+        out[:, a] = (ll[0] - ll[1]) / (2 * step[a])
+    return out
 
 
 def _sandwich_map(lik, draws: np.ndarray, cols: np.ndarray, lev: np.ndarray):

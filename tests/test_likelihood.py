@@ -154,6 +154,26 @@ def test_vectorised_equals_per_walker_and_prior_edges():
     assert np.isneginf(lp[3]) and np.isneginf(lp[4])
 
 
+def test_a_batch_split_into_passes_gives_the_same_values(monkeypatch):
+    """A batch of θ too large for one pass (likelihood.PASS_ELEMENTS) is evaluated in passes:
+    the values must be those of one pass. Each walker's sum is the same sum either way, so
+    they agree to rounding (the kernels' parallel reductions may order it differently)."""
+    from fitting import likelihood
+
+    rng = np.random.default_rng(4)
+    t = _lambert_case(rng, n=60)
+    model = models.get("torrance-sparrow")
+    space = _space(model, ["R", "G"], discrepancy=True)
+    lik = Likelihood(model, t, space)
+    lo, hi = space.bounds
+    theta = rng.uniform(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo), (16, space.ndim))
+    whole_ll, whole_pw = lik.log_likelihood(theta), lik.pointwise_log_likelihood(theta)
+    monkeypatch.setattr(likelihood, "PASS_ELEMENTS", 3 * lik.n)  # passes of 3, 3, …, 1 walkers
+    assert lik._per_pass(16) == 3
+    np.testing.assert_allclose(lik.log_likelihood(theta), whole_ll, rtol=1e-12)
+    np.testing.assert_allclose(lik.pointwise_log_likelihood(theta), whole_pw, rtol=1e-12)
+
+
 def test_never_nan_on_hostile_data():
     """10⁵ draws within the prior box on data with zero, saturated, dark, grazing (θ up to
     exactly π/2), retro, near-specular and tiny-σ samples: finite or −∞, never NaN."""

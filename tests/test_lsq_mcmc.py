@@ -312,15 +312,21 @@ def test_interval_coverage_over_repeats():
 
 def test_search_on_a_subsample_then_polish_reaches_the_full_multistart_optimum(monkeypatch):
     """Above fitting.fit.SEARCH_ROWS rows the multi-start search runs on a random subsample
-    and only its best start is polished on all rows: on a narrow lobe (m = 0.05, where a single
-    broad start can stall) it must land on the optimum the full multi-start finds — the same
-    cost to 1e-6 of it and parameters within 1e-3 of their sd (both are the same basin's
-    minimum; the tolerances are the solver's, far below the statistics). The threshold is
+    and only its best start is polished on all rows, by Levenberg–Marquardt on normal equations
+    summed over blocks of rows (fitting.lsq.polish_in_blocks): on a narrow lobe (m = 0.05,
+    where a single broad start can stall) it must land on the optimum the full multi-start
+    finds — the same cost to 1e-6 of it and parameters within 1e-3 of their sd (both are the
+    same basin's minimum; the tolerances are the solver's, far below the statistics), and the
+    same covariance. The threshold is
     lowered to 2 500 rows here (a 7 500-row table) so the test stays cheap; the logic is the
     one that runs at 50 000 (docs/performance.md: its effect on a 10⁷-row fit)."""
     import fitting.fit as fit_module
+    import fitting.lsq as lsq_module
 
     monkeypatch.setattr(fit_module, "SEARCH_ROWS", 2500)
+    # The polish sums its normal equations over blocks (fitting.lsq.polish_in_blocks): 1 000
+    # rows each here, so every channel spans several and a block ends mid-channel.
+    monkeypatch.setattr(lsq_module, "BLOCK_ROWS", 1000)
     rng = np.random.default_rng(12)
     table = synthetic(0.05, 2500, rng, rel_noise=0.02)
     opt = FitOptions(model="torrance-sparrow", model_options={"fresnel": "none"}, n_starts=4)
@@ -336,3 +342,6 @@ def test_search_on_a_subsample_then_polish_reaches_the_full_multistart_optimum(m
     free = sd > 0  # the discrepancy is held by least squares (no residual depends on it)
     assert np.all(np.abs(fast.x - full.x)[free] < 1e-3 * sd[free]), (fast.x - full.x) / sd
     assert np.array_equal(fast.x[~free], full.x[~free])
+    # The same central-difference (JᵀJ)⁻¹ at optima 1e-3 sd apart: the Jacobian moves by
+    # ~1e-3 sd × its curvature, far below 1e-3 of itself.
+    np.testing.assert_allclose(fast.cov, full.cov, rtol=1e-3, atol=1e-12)
