@@ -457,6 +457,29 @@ def _chain_notes(res, h5) -> list[str]:  # noqa: ANN001
     ]
 
 
+def _walkers_covariance(cov: np.ndarray, specs, x: np.ndarray, coords) -> np.ndarray:  # noqa: ANN001
+    """The covariance the first walkers are drawn from (fitting.mcmc.initial_ball): the
+    least-squares (Laplace) covariance with its correlations, in the sampler's coordinates
+    (C_y = T C Tᵀ, T = ∂y/∂x at x by central differences); a parameter least squares held gets
+    its prior's σ (a nuisance) or 1e-3, uncorrelated."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    held = ~(sd > 0)
+    c = np.array(cov, dtype=np.float64)
+    c[held, :] = c[:, held] = 0.0
+    fill = np.array([s.prior_sigma if s.prior_sigma is not None else 1e-3 for s in specs])
+    c[held, held] = fill[held] ** 2
+    if coords is None:
+        return c
+    h = 1e-6 * np.maximum(1.0, np.abs(x))
+    t = np.empty((x.size, x.size))
+    for k in range(x.size):
+        xp, xm = x.copy(), x.copy()
+        xp[k] += h[k]
+        xm[k] -= h[k]
+        t[:, k] = (coords.to_sampler(xp) - coords.to_sampler(xm)) / (2 * h[k])
+    return t @ c @ t.T
+
+
 def _from_sampler(res, coords, ensembles: int):  # noqa: ANN001, ANN202
     """The chain in θ from the sampler's coordinates (fitting.nuisance.SamplerCoordinates):
     ln p without the Jacobian, τ / ESS / R̂ recomputed on θ (R̂ across the ensembles)."""
@@ -479,11 +502,7 @@ def _run_ensembles(lik, lsq, x_lsq, opt: FitOptions, rng, h5, progress: bool, co
     lo, hi = lik.space.bounds
     scale = None
     if lsq.cov is not None:
-        scale = np.sqrt(np.clip(np.diag(lsq.cov), 0, None))
-        scale = np.where(scale > 0, scale, 1e-3)
-        for i, s in enumerate(lik.space.specs):  # a nuisance held by least squares: its prior
-            if s.prior_sigma is not None and not lsq.cov[i, i] > 0:
-                scale[i] = s.prior_sigma
+        scale = _walkers_covariance(lsq.cov, lik.space.specs, x_lsq, coords)
     fingerprint = _fingerprint(
         lik, opt.model, dict(opt.model_options), opt.likelihood, opt.nu, opt.censor
     )
