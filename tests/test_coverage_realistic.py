@@ -14,14 +14,18 @@ The twin fits the same samples the old way — the scale's σ added to every sam
 quadrature, the angles not carried — and its 95 % coverage of kd must fall below 80 %: the
 shared error averaged away as if it were independent (so this test can fail).
 
-Not yet met: m's 68 % interval is too wide — it holds the truth in 0.87 of these rigs (the
-band's top is 0.80; its 95 % interval: 0.97), so that one bound is not asserted. What is known:
-the nuisance model moves f as the simulated world does, error by error (tests/test_nuisance.py:
-slopes 1.000); the least-squares (Laplace) width of m equals the chain's, so the sampler is not
-the cause; with 2000 steps m's 68 % coverage is 0.80 and its half-width 1.35× its RMS error over
-the rigs, and over 16 rigs m's error is 0.5 of its posterior sd while every nuisance's is ~1 —
-m's spread comes from the near-degenerate pair light-elevation zero / sample tilt about y,
-which the data leave to their priors. Issue 17 stays open for it.
+Measured (stop 35): kd 0.63 / 0.97, ks 0.60 / 0.93, m 0.80 / 0.93 (68 % / 95 %). m's bound holds
+at its edge, and its intervals are still about 1.4× too wide: over these rigs m's error is 0.72
+of its posterior half-width (kd's and ks's 1.04 and 0.99) and biased by +0.36 of it (the 5 mm
+lamp's blur of the lobe, which the model does not carry). Two causes were found and removed:
+the first walkers were drawn axis-wise with the Laplace sds, off the ridge of the strongly
+correlated light-elevation zero and tilt about y, where 600 steps still held them (0.87 → 0.83),
+and the nuisance model turned a camera-azimuth error's image at the normal, which the rig's
+look-at rule does not (→ 0.80). What is left: with the world's errors fixed, noise alone moves
+m by 0.56 of its half-width, so the rigs' errors move it by about 0.5 where the posterior
+expects about 0.83; the nuisance model matches the world error by error
+(tests/test_nuisance.py: slopes 1.000), so the remaining width comes from how the errors
+combine, not from one of them.
 
 Each repeat runs in a fresh interpreter (spawn, as tests/test_coverage_sim.py, which says why).
 """
@@ -34,6 +38,7 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from acquisition.config import (
     CalibrationPhasesConfig,
@@ -122,6 +127,9 @@ def _one_repeat(k: int) -> dict[str, dict[str, tuple[bool, bool]]]:
     return out
 
 
+# 30 acquisitions and 60 fits on the 2 cores, which the suite's other worker shares: ~5 min
+# alone, 10 min when the cores are contended (measured) — the suite's 600 s default is too close.
+@pytest.mark.timeout(1200)
 def test_coverage_on_realistic_rigs_and_the_quadrature_twin_fails() -> None:
     with ProcessPoolExecutor(max_workers=2, mp_context=get_context("spawn")) as pool:
         repeats = list(pool.map(_one_repeat, range(REPEATS)))
@@ -139,11 +147,10 @@ def test_coverage_on_realistic_rigs_and_the_quadrature_twin_fails() -> None:
         for name, (c68, c95) in by_name.items():
             print(f"{label}: {name} 68 % covers {c68:.2f}, 95 % covers {c95:.2f} of {REPEATS}")
     for name, (c68, c95) in cover["nuisance"].items():
-        # The issue's bands: nominal 0.68 and 0.95, less about two binomial sd at 30 repeats.
-        assert c68 >= 0.55, (name, c68)
+        # The issue's bands: nominal 0.68 and 0.95, less about two binomial sd at 30 repeats
+        # (the 68 % band's top is 1.4 sd above nominal).
+        assert 0.55 <= c68 <= 0.80, (name, c68)
         assert c95 >= 0.88, (name, c95)
-        if name != "m":  # m's intervals are too wide yet (module docstring): 0.87 at 68 %
-            assert c68 <= 0.80, (name, c68)
     # The old treatment: the 1.9 % scale σ shrunk by √N into kd's interval (σ_kd ≈ 0.1 %),
     # so a 95 % interval holds the truth only when the rig's scale error is ≲ 0.1 %: rarely.
     assert cover["quadrature"]["kd_G"][1] < 0.80, cover["quadrature"]["kd_G"]
