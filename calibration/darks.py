@@ -17,6 +17,7 @@ of a light frame at that exposure; the master itself carries σ_d²/N.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,18 +64,25 @@ def calibration_take_description(run_dir: str | Path, kind: str) -> dict:
         return {} if info is None else dict(info["description"])
 
 
-def _decode_all(run_dir: Path, entries: list[dict]) -> list[np.ndarray]:
-    out = []
+def _decode_all(run_dir: Path, entries: list[dict]) -> Iterator[np.ndarray]:
+    """The entries' frames as float64 DN, decoded one at a time as the master that takes them
+    asks (all of one shape). Masters accumulate frame by frame: holding every frame at once and
+    then a stack of them cost 2 × N frames of float64 — 12 GB for the default 32 flats of a
+    24 MP camera (benchmarks/bench_camera_scale.py)."""
+    shape = None
     for e in entries:
         try:
             frame = decode_frame(run_dir / e["path"], e.get("sha256"))
-            out.append(np.asarray(frame.dn, dtype=np.float64))
         except FrameError as exc:
             raise CalibrationFrameError(f"{e['kind']} frame unusable: {exc}") from None
-    shapes = {a.shape for a in out}
-    if len(shapes) != 1:
-        raise CalibrationFrameError(f"calibration frames of different shapes {sorted(shapes)}")
-    return out
+        dn = np.asarray(frame.dn, dtype=np.float64)
+        if shape is None:
+            shape = dn.shape
+        elif dn.shape != shape:
+            raise CalibrationFrameError(
+                f"calibration frames of different shapes {sorted({shape, dn.shape})}"
+            )
+        yield dn
 
 
 @dataclass(frozen=True)
@@ -90,13 +98,25 @@ class MasterDark:
         return self.temporal_var_dn2 / self.n_frames
 
 
-def master_dark(frames: list[np.ndarray], exposure_s: float) -> MasterDark:
-    """Per-pixel mean of dark frames at one exposure, and their temporal variance (DN²)."""
-    stack = np.stack([np.asarray(f, dtype=np.float64) for f in frames])
-    if stack.shape[0] < 2:
+def master_dark(frames: Iterable[np.ndarray], exposure_s: float) -> MasterDark:
+    """Per-pixel mean of dark frames at one exposure, and their temporal variance (DN²).
+
+    Accumulated one frame at a time (Welford's update: the mean and the sum of squared
+    deviations per pixel), so memory does not grow with the number of frames."""
+    n, mean, m2 = 0, None, None
+    for f in frames:
+        x = np.asarray(f, dtype=np.float64)
+        n += 1
+        if mean is None:
+            mean, m2 = x.copy(), np.zeros_like(x)
+            continue
+        delta = x - mean
+        mean += delta / n
+        m2 += delta * (x - mean)
+    if n < 2:
         raise CalibrationFrameError("a master dark needs at least 2 frames")
-    var = float(np.mean(np.var(stack, axis=0, ddof=1)))  # unbiased per pixel, then averaged
-    return MasterDark(float(exposure_s), stack.mean(axis=0), var, stack.shape[0])
+    var = float(np.mean(m2 / (n - 1)))  # unbiased per pixel, then averaged
+    return MasterDark(float(exposure_s), mean, var, n)
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,8 @@ sample's σ (it is a per-pixel fixed error, so it cannot average away across pos
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,7 +74,7 @@ def _centre_value(e: np.ndarray, rho: np.ndarray) -> float:
 
 
 def master_flat(
-    frames: list[np.ndarray],
+    frames: Iterable[np.ndarray],
     *,
     channels: str,
     cfa_pattern: str | None,
@@ -86,11 +88,22 @@ def master_flat(
     the read noise."""
     black_level_dn, white_level_dn = radiometry.black_level_dn, radiometry.white_level_dn
     gain_e_per_dn, read_noise_e = radiometry.gain_e_per_dn, radiometry.read_noise_e
-    stack = np.stack([np.asarray(f, dtype=np.float64) for f in frames])
-    if np.any(stack >= white_level_dn - 0.5):
-        raise CalibrationFrameError(
-            "flat frames are saturated: lower the exposure or the source level"
-        )
+    # Summed one frame at a time: memory independent of the number of frames (see
+    # calibration.darks._decode_all).
+    total, n = None, 0
+    for f in frames:
+        x = np.asarray(f, dtype=np.float64)
+        if np.any(x >= white_level_dn - 0.5):
+            raise CalibrationFrameError(
+                "flat frames are saturated: lower the exposure or the source level"
+            )
+        if total is None:
+            total = x.copy()
+        else:
+            total += x
+        n += 1
+    if total is None:
+        raise CalibrationFrameError("no flat frames")
     if darks is not None:
         dark = darks.for_exposure(exposure_s)
         base = dark.dn
@@ -98,8 +111,7 @@ def master_flat(
     else:
         base = black_level_dn
         noise_var_e = read_noise_e**2 + gain_e_per_dn**2 / 12.0
-    e = (stack - base).mean(axis=0) * gain_e_per_dn
-    n = stack.shape[0]
+    e = (total / n - base) * gain_e_per_dn
     if np.any(e <= 0):
         raise CalibrationFrameError("flat frames have pixels with no signal above dark")
     shape = e.shape
@@ -133,9 +145,10 @@ def load_flat(
     if len(exposures) != 1:
         raise CalibrationFrameError(f"flat frames at several exposures {sorted(exposures)}")
     frames = _decode_all(run_dir, entries)  # raises a one-line error on a bad frame
+    first_dn = next(frames)  # checked against its SHA-256 before anything else reads it
     first = decode_frame(run_dir / entries[0]["path"])  # for its layout; verified just above
     return master_flat(
-        frames,
+        itertools.chain([first_dn], frames),
         channels=first.channels,
         cfa_pattern=first.cfa_pattern,
         exposure_s=exposures.pop(),
