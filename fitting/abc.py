@@ -33,9 +33,10 @@ import math
 from collections.abc import Mapping
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from fitting import kernels as _k
+from fitting.kernels import njit
 from fitting.models import Model, Parameter, _above, _flat_parameters
 
 __all__ = ["AbcLobe", "abc_lobe", "EXPONENTS"]

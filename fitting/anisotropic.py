@@ -37,11 +37,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from fitting import fresnel as _fresnel
 from fitting import kernels as _k
 from fitting import microfacet as _mf
+from fitting.kernels import njit
 from fitting.models import (
     _FRESNEL,
     _FRESNEL_PARAMETERS,

@@ -8,17 +8,19 @@ reference path, which the tests compare against this one to 1e-12).
 
 Parameter arrays are 2-D, shape (W, 1) (one value per set) or (W, N) (per set and sample);
 ``out`` is (W, N). Compiled with ``cache=True`` so only the first run on a machine pays the
-compile time; ``fastmath=False`` keeps IEEE semantics (inf/NaN guards below rely on it).
+compile time. Every kernel here and in the other model modules is compiled by this module's
+:func:`njit`, whose only fast-math flag is ``contract`` (see ``FASTMATH``).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 
 import numba
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 __all__ = [
     "DIST_BECKMANN",
@@ -55,7 +57,20 @@ __all__ = [
     "stage_distribution",
     "stage_shadowing",
     "CHUNK",
+    "FASTMATH",
+    "njit",
 ]
+
+# The one fast-math flag the model kernels allow: "contract" lets LLVM fuse a·b + c into one
+# fused multiply-add (one rounding instead of two, so a result moves by an ulp or so; this CPU
+# has FMA units, and without the flag numba emits none). Flags that assume finite values
+# (nnan, ninf) or reorder sums (reassoc) stay off: the inf/NaN guards and the compensated
+# forms below rely on IEEE semantics. Measured: benchmarks/bench_models.py, docs/performance.md.
+FASTMATH = frozenset({"contract"})
+# error_model="numpy": a float division by zero gives ±inf/NaN as IEEE says instead of numba's
+# default Python-style check, whose raise path keeps LLVM from vectorising any loop that divides
+# (the kernels guard their divisions themselves).
+njit = functools.partial(numba.njit, fastmath=set(FASTMATH), error_model="numpy")
 
 DIST_BECKMANN, DIST_GGX = 0, 1
 SHADOW_VCAVITY, SHADOW_SMITH, SHADOW_SMITH_RATIONAL, SHADOW_SMITH_CORRELATED = 0, 1, 2, 3

@@ -31,12 +31,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from scipy.special import gammaln
 
 from fitting import fresnel as _fresnel
 from fitting import kernels as _k
 from fitting import microfacet as _mf
+from fitting.kernels import njit
 from fitting.models import (
     _FRESNEL,
     _FRESNEL_PARAMETERS,

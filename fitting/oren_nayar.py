@@ -42,9 +42,10 @@ import hashlib
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from fitting import kernels as _k
+from fitting.kernels import njit
 from fitting.models import Model, Parameter, _above, _flat_parameters, _parallel_geometry
 
 __all__ = [
