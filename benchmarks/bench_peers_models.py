@@ -99,12 +99,17 @@ _ANISO_PAIR = {"addmul": 25, "fma": 8, "div": 9, "sqrt": 4}  # _aniso_row: as _g
 # Ward's three normalisations (computed for the TS model too)
 _D_BECKMANN = {"addmul": 8, "exp": 1}  # x = t2/m², min, exp_neg, (1+t2)²·e·dn, underflow select
 _D_GGX = {"addmul": 3, "fma": 1, "div": 1}  # r = (1+t2)/(1 + t2/m²), r²·dn
-_G_RATIONAL = {"addmul": 23, "fma": 6, "div": 1}  # per side u = m s, numerator, denominator,
-# a < 1.6 selects; one divide for the product
-_G_GGX = {"addmul": 9, "fma": 2, "sqrt": 2, "div": 1}  # 1/((ci + Ri)(co + Ro)), Ri = √(ci² + m²si²)
-_F_DIELECTRIC = {"addmul": 14, "fma": 4, "sqrt": 1, "div": 1}  # one divide for Rs + Rp, TIR select
-_F_CONDUCTOR = {"addmul": 19, "fma": 2, "sqrt": 2, "div": 1}  # Möller's real form, one divide
-_COMBINE = {"addmul": 4, "fma": 1}  # kd/π + ks·(d·g·f), valid select
+_G_RATIONAL = {"addmul": 23, "fma": 6}  # per side u = m s, numerator, denominator, a < 1.6
+# selects; its one divide is folded into the combine's (fitting.kernels._stage_g_frac)
+_G_GGX = {"addmul": 9, "fma": 2, "sqrt": 2}  # 1/((ci + Ri)(co + Ro)), Ri = √(ci² + m²si²); the
+# divide folded into the combine's
+# F as a fraction (fitting.kernels._stage_f_frac); torrance-sparrow folds its divide into the
+# combine's, the anisotropic model (stage_fresnel) divides in the stage
+_F_DIELECTRIC = {"addmul": 14, "fma": 4, "sqrt": 1}  # Rs + Rp over one denominator, TIR select
+_F_CONDUCTOR = {"addmul": 19, "fma": 2, "sqrt": 2}  # Möller's real form, one denominator
+_STAGE_DIVIDE = {"div": 1}
+_COMBINE = {"addmul": 5, "fma": 1, "div": 1}  # kd/π + ks·(d·g·f)/(gden·fden), valid select
+_COMBINE_ANISO = {"addmul": 4, "fma": 1}  # kd/π + ks·(d·g·f), valid select
 _Q_ANISO = {"addmul": 8, "fma": 3, "div": 1}  # rotate s by φ₀, q = (x'²/αx² + y'²/αy²)/sz²
 _D_GGX_ANISO = {"addmul": 4, "div": 1}  # r = (1+t2)/(1+q), r²·dn
 _G_GGX_ANISO = {"addmul": 15, "fma": 8, "sqrt": 2, "div": 1}  # rotate ω_i, ω_o, u² per side,
@@ -144,11 +149,15 @@ OPS: dict[str, dict[str, dict[str, int]]] = {
     },
     # _block_per_set: _stage_q, _stage_d (GGX), _stage_g (GGX separable), stage_fresnel, combine
     "torrance-sparrow-anisotropic ggx,smith": {
-        "set": _sum(_Q_ANISO, _D_GGX_ANISO, _G_GGX_ANISO, _F_DIELECTRIC, _COMBINE),
+        "set": _sum(
+            _Q_ANISO, _D_GGX_ANISO, _G_GGX_ANISO, _F_DIELECTRIC, _STAGE_DIVIDE, _COMBINE_ANISO
+        ),
         "pair": _ANISO_PAIR,
     },
     "torrance-sparrow-anisotropic ggx,smith,conductor": {
-        "set": _sum(_Q_ANISO, _D_GGX_ANISO, _G_GGX_ANISO, _F_CONDUCTOR, _COMBINE),
+        "set": _sum(
+            _Q_ANISO, _D_GGX_ANISO, _G_GGX_ANISO, _F_CONDUCTOR, _STAGE_DIVIDE, _COMBINE_ANISO
+        ),
         "pair": _ANISO_PAIR,
     },
 }

@@ -60,6 +60,7 @@ __all__ = [
     "CHUNK",
     "FASTMATH",
     "njit",
+    "constant_above",
 ]
 
 
@@ -852,6 +853,40 @@ def lobe(geo, pt, per_sample, log_out, out):
     :func:`lobe_parameter_table` with W rows, or W·N rows (row w·N + j) if ``per_sample``."""
     rs, cs = (out.shape[1], 1) if per_sample else (1, 0)
     _dispatch("lobe", _lobe_par, _lobe_ser, out.size, geo, pt, rs, cs, log_out, out)
+
+
+# -- Lambert: a constant per set, 0 (−inf for log f) below the horizon -----------------------------
+@njit(cache=True)
+def _constant_row(value, cs, above, fill, out, w):
+    n = out.shape[1]
+    for j in range(n):
+        v = value[w, j * cs]
+        out[w, j] = v if above[j] else fill
+
+
+@njit(parallel=True, cache=True)
+def _constant_par(value, cs, above, fill, out):
+    for w in prange(out.shape[0]):
+        _constant_row(value, cs, above, fill, out, w)
+
+
+@njit(cache=True)
+def _constant_ser(value, cs, above, fill, out):
+    for w in range(out.shape[0]):
+        _constant_row(value, cs, above, fill, out, w)
+
+
+def constant_above(value, above, log_out, out):
+    """out[w, j] = value[w] (or value[w, j]; its log if ``log_out``) where ``above[j]``, else 0
+    (−inf): Lambert's f = kd/π for every (set, pair) in one store each — a store-bound loop that
+    numpy's divide-then-masked-assignment took two passes and a gather for. ``value`` is (W, 1)
+    or (W, N) float64, already kd/π."""
+    cs = 0 if value.shape[1] == 1 else 1
+    if log_out:
+        with np.errstate(divide="ignore"):
+            value = np.log(value)  # once per value, not per (set, pair)
+    fill = _NINF if log_out else 0.0
+    _dispatch("constant", _constant_par, _constant_ser, out.size, value, cs, above, fill, out)
 
 
 # -- Gaussian log-likelihood with a fractional discrepancy ----------------------------------------

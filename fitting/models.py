@@ -224,15 +224,8 @@ class Lambert(Model):
         return f
 
     def _numba(self, v, wi, wo, log, out):
-        # Straight into `out` (kd is (W, 1) or (W, N)): no (W, N) temporary from np.where and no
-        # second copy of it (benchmarks/bench_peers_models.py measures it against JAX).
-        kd = v["kd"]
-        if log:
-            with np.errstate(divide="ignore"):
-                out[...] = np.log(np.divide(kd, np.pi))  # one log per value of kd, broadcast
-        else:
-            np.divide(kd, np.pi, out=out)
-        out[:, ~_above(wi, wo)] = -np.inf if log else 0.0
+        kdpi = np.ascontiguousarray(np.divide(v["kd"], np.pi), dtype=np.float64)
+        _k.constant_above(kdpi, _above(wi, wo), log, out)
 
 
 _LOBES = {
