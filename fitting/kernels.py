@@ -859,9 +859,15 @@ def lobe(geo, pt, per_sample, log_out, out):
 @njit(cache=True)
 def _constant_row(value, cs, above, fill, out, w):
     n = out.shape[1]
-    for j in range(n):
-        v = value[w, j * cs]
-        out[w, j] = v if above[j] else fill
+    row = out[w]
+    if cs == 0:  # one value per set: a select per store, vectorised
+        v = value[w, 0]
+        for j in range(n):
+            row[j] = v if above[j] else fill
+    else:
+        vrow = value[w]
+        for j in range(n):
+            row[j] = vrow[j] if above[j] else fill
 
 
 @njit(parallel=True, cache=True)
