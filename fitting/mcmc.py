@@ -10,7 +10,8 @@
   k and the τ estimate changed by less than 5 % since the last check (the emcee documentation's
   criterion), otherwise when ``max_steps`` or the time budget is reached — ``stop_reason`` says
   which ("converged", "max_steps", "time_budget", or "target_ess" when ``target_ess`` is
-  given and every parameter's ESS reached it first).
+  given and every parameter's ESS reached it first — counted only once τ is stable and the
+  chain is at least ``MIN_TAU_LENGTHS`` τ long, since a short chain's τ reads low).
 * Burn-in = ⌈3·max τ⌉ (capped at half the chain); ESS_k = (N − burn)·W/τ_k.
 * R-hat: Gelman-Rubin potential scale reduction on *split* per-walker chains — each walker's
   post-burn chain is cut in half, giving 2W chains of length n; B = n·var(chain means),
@@ -59,7 +60,13 @@ __all__ = [
     "convergence_verdict",
     "extend_chain",
     "chain_diagnostics",
+    "MIN_TAU_LENGTHS",
 ]
+
+#: A ``target_ess`` stop needs a chain at least this many (largest) τ long: emcee's τ from
+#: shorter chains is biased low, and the ESS with it. (32 walkers reach ESS 1000 at 31 τ, so the
+#: usual target is unaffected; a small target no longer stops a chain after 3 τ.)
+MIN_TAU_LENGTHS = 20
 
 
 class ChainFileError(UserError, ValueError):
@@ -332,7 +339,16 @@ def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool, store=N
             if np.all(np.isfinite(tau)) and np.all(it > 50 * tau) and stable:
                 stop_reason = "converged"
                 break
-            if opt.target_ess is not None and np.all(np.isfinite(tau)):
+            # The ESS is only as good as τ: from a chain a few τ long emcee's estimate reads low
+            # (a 100-step chain gave τ ≈ 8 where the long run's is 30, so "ESS 256" was 46 by
+            # NumPyro's estimator, R̂ 1.47: benchmarks/bench_peers_sampler.py --quick). So the
+            # target counts only once τ has settled (as for "converged") on ≥ MIN_TAU_LENGTHS τ.
+            if (
+                opt.target_ess is not None
+                and np.all(np.isfinite(tau))
+                and stable
+                and it >= MIN_TAU_LENGTHS * np.max(tau)
+            ):
                 burn_now = min(int(math.ceil(3 * np.max(tau))), it // 2)
                 if np.min((it - burn_now) * walkers / tau) >= opt.target_ess:
                     stop_reason = "target_ess"

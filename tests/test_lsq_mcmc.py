@@ -152,6 +152,30 @@ def test_emcee_wrapper_on_known_gaussian():
     assert np.all(res.rhat < 1.05)
 
 
+def test_a_small_target_ess_does_not_stop_a_chain_before_its_tau_settles():
+    # A 9-D correlated Gaussian, 32 walkers, DE. Before the rule, a target of 200 stopped the
+    # chain after its first 100-step chunk, on a τ estimate (≈ 9) taken from ~10 τ of chain;
+    # the stop must wait for τ to settle on a chain ≥ MIN_TAU_LENGTHS τ long.
+    from fitting.mcmc import MIN_TAU_LENGTHS
+
+    ndim = 9
+    rng = np.random.default_rng(3)
+    a = rng.standard_normal((ndim, ndim))
+    cov = a @ a.T + 0.05 * np.eye(ndim)  # badly conditioned on purpose: long τ
+    prec = np.linalg.inv(cov)
+
+    def log_prob(x):
+        d = np.atleast_2d(x)
+        return -0.5 * np.einsum("wi,ij,wj->w", d, prec, d)
+
+    lo, hi = np.full(ndim, -1e3), np.full(ndim, 1e3)
+    opt = McmcOptions(walkers=32, max_steps=20_000, target_ess=200)
+    res = run_mcmc(log_prob, np.zeros(ndim), (lo, hi), opt, rng=1, scale=np.sqrt(np.diag(cov)))
+    assert res.stop_reason in ("target_ess", "converged")  # converged: N > 50 τ, stable τ
+    assert res.iterations >= MIN_TAU_LENGTHS * np.max(res.tau)
+    assert np.min(res.ess) >= 200
+
+
 def _rhat_bda3(chains: list[list[float]]) -> float:
     """Gelman et al., BDA3 eq. 11.1–11.4, written with plain Python loops (reference)."""
     m, n = len(chains), len(chains[0])
