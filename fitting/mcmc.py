@@ -10,8 +10,8 @@
   k and the τ estimate changed by less than 5 % since the last check (the emcee documentation's
   criterion), otherwise when ``max_steps`` or the time budget is reached — ``stop_reason`` says
   which ("converged", "max_steps", "time_budget", or "target_ess" when ``target_ess`` is
-  given and every parameter's ESS reached it first — counted only once τ is stable and the
-  chain is at least ``MIN_TAU_LENGTHS`` τ long, since a short chain's τ reads low).
+  given and every parameter's ESS reached it first — counted only on a chain at least
+  ``MIN_TAU_LENGTHS`` τ long, since a short chain's τ reads low).
 * Burn-in = ⌈3·max τ⌉ (capped at half the chain); ESS_k = (N − burn)·W/τ_k.
 * R-hat: Gelman-Rubin potential scale reduction on *split* per-walker chains — each walker's
   post-burn chain is cut in half, giving 2W chains of length n; B = n·var(chain means),
@@ -342,11 +342,12 @@ def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool, store=N
             # The ESS is only as good as τ: from a chain a few τ long emcee's estimate reads low
             # (a 100-step chain gave τ ≈ 8 where the long run's is 30, so "ESS 256" was 46 by
             # NumPyro's estimator, R̂ 1.47: benchmarks/bench_peers_sampler.py --quick). So the
-            # target counts only once τ has settled (as for "converged") on ≥ MIN_TAU_LENGTHS τ.
+            # target counts only on a chain ≥ MIN_TAU_LENGTHS τ long. (Not also "τ stable within
+            # 5 %", as "converged" asks: on the benchmark posterior that held the stop back until
+            # 50 τ, ~3× the steps.)
             if (
                 opt.target_ess is not None
                 and np.all(np.isfinite(tau))
-                and stable
                 and it >= MIN_TAU_LENGTHS * np.max(tau)
             ):
                 burn_now = min(int(math.ceil(3 * np.max(tau))), it // 2)

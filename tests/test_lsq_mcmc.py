@@ -155,7 +155,7 @@ def test_emcee_wrapper_on_known_gaussian():
 def test_a_small_target_ess_does_not_stop_a_chain_before_its_tau_settles():
     # A 9-D correlated Gaussian, 32 walkers, DE. Before the rule, a target of 200 stopped the
     # chain after its first 100-step chunk, on a τ estimate (≈ 9) taken from ~10 τ of chain;
-    # the stop must wait for τ to settle on a chain ≥ MIN_TAU_LENGTHS τ long.
+    # the stop must wait for a chain ≥ MIN_TAU_LENGTHS τ long.
     from fitting.mcmc import MIN_TAU_LENGTHS
 
     ndim = 9
