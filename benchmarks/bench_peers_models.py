@@ -362,6 +362,10 @@ def limit_threads(requested: int) -> tuple[int, str]:
         + f" --xla_cpu_multi_thread_eigen={eigen} intra_op_parallelism_threads={threads}"
     ).strip()
     numba.set_num_threads(threads)  # starts numba's pool: after the affinity
+    # gonio's default "auto" policy picks serial or parallel from timings as it runs; here the
+    # peers' own thread pools (XLA's spin after each call) would make its early picks noise. Every
+    # peer gets the threads, so gonio runs its parallel kernels (bench_models measures "auto").
+    kernels.set_threading("parallel" if threads > 1 else "serial")
     return threads, note
 
 
