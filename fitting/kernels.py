@@ -9,7 +9,8 @@ reference path, which the tests compare against this one to 1e-12).
 Parameter arrays are 2-D, shape (W, 1) (one value per set) or (W, N) (per set and sample);
 ``out`` is (W, N). Compiled with ``cache=True`` so only the first run on a machine pays the
 compile time. Every kernel here and in the other model modules is compiled by this module's
-:func:`njit`, whose only fast-math flag is ``contract`` (see ``FASTMATH``).
+:func:`njit`: IEEE semantics (no fast-math; see the note above ``njit``), so the serial and
+parallel twins agree bit for bit.
 """
 
 from __future__ import annotations
@@ -58,7 +59,6 @@ __all__ = [
     "stage_distribution",
     "stage_shadowing",
     "CHUNK",
-    "FASTMATH",
     "njit",
     "constant_above",
 ]
@@ -87,16 +87,17 @@ def _prefer_512_bit_vectors() -> None:
 
 _prefer_512_bit_vectors()
 
-# The one fast-math flag the model kernels allow: "contract" lets LLVM fuse a·b + c into one
-# fused multiply-add (one rounding instead of two, so a result moves by an ulp or so; this CPU
-# has FMA units, and without the flag numba emits none). Flags that assume finite values
-# (nnan, ninf) or reorder sums (reassoc) stay off: the inf/NaN guards and the compensated
-# forms below rely on IEEE semantics. Measured: benchmarks/bench_models.py, docs/performance.md.
-FASTMATH = frozenset({"contract"})
+# No fast-math flag at all. "contract" (fused multiply-adds) measured 14–28 % faster, but LLVM
+# fuses differently in the serial and the parallel twin of a kernel (each is compiled on its own),
+# so their results differed in the last bit (a fresh-clone run of
+# tests/test_models.py::test_large_problem_uses_parallel_kernels_identically) and the "auto"
+# threading policy would make a seeded fit depend on the machine's load. Without it both twins
+# round every operation as IEEE says, whatever the vector width, so they agree bit for bit.
+# Flags that assume finite values (nnan, ninf) would also break the inf/NaN guards below.
 # error_model="numpy": a float division by zero gives ±inf/NaN as IEEE says instead of numba's
 # default Python-style check, whose raise path keeps LLVM from vectorising any loop that divides
 # (the kernels guard their divisions themselves).
-njit = functools.partial(numba.njit, fastmath=set(FASTMATH), error_model="numpy")
+njit = functools.partial(numba.njit, fastmath=False, error_model="numpy")
 
 DIST_BECKMANN, DIST_GGX = 0, 1
 SHADOW_VCAVITY, SHADOW_SMITH, SHADOW_SMITH_RATIONAL, SHADOW_SMITH_CORRELATED = 0, 1, 2, 3

@@ -165,8 +165,8 @@ def _compare(model, params, wi, wo):
             # absolute 1e-12 where f is representable (f agrees to ~1e-15 relative); for huge
             # negative logs (f underflows, computed in log space) rounding of −tan²θ_h/m² is
             # relative, hence rtol. A lobe's log f = log(norm) + n·log(cos): a few ulps of
-            # rounding in cos (the sum of squares, sqrt and division, each side; the kernels
-            # fuse multiply-adds, the reference does not) are n·8ε in log f, whatever its size.
+            # rounding in cos (the sum of squares, sqrt and division, each side, in different
+            # orders) are n·8ε in log f, whatever its size.
             n_max = float(np.max(params["n"])) if "n" in params else 0.0
             atol = max(1e-12, 8 * np.finfo(float).eps * n_max)
             np.testing.assert_allclose(fast[ok], ref[ok], rtol=1e-14, atol=atol)
