@@ -38,7 +38,7 @@ from numba import prange
 
 from fitting import kernels, models
 from fitting.directions import uniform_hemisphere
-from fitting.kernels import njit  # the kernels' own flags, so an FMA is an FMA here too
+from fitting.kernels import njit  # the kernels' own flags, so ops cost what they cost there
 
 __all__ = ["main", "CASES", "OPS"]
 
@@ -86,8 +86,9 @@ CASES: list[Case] = [
 # _stage_d, _stage_g, _stage_f), fitting.anisotropic (_aniso_row, _block_per_set with _stage_q,
 # _stage_d, _stage_g) and fitting.models.Lambert._numba. Conventions:
 #   addmul  one add, sub, mul, compare, select, min or max (all ~1 vector µop on x86)
-#   fma     one explicit a*b + c pattern (the kernels' njit allows contraction to a fused
-#           multiply-add, and the microbenchmark below is compiled by the same njit)
+#   fma     one explicit a*b + c pattern (the kernels' njit does not fuse it — IEEE rounding keeps
+#           serial and parallel twins identical — so the microbenchmark below, compiled by the
+#           same njit, measures the mul + add pair it compiles to)
 #   div, sqrt, exp, log, pow, erfc  one call each; gonio's vectorisable exp_neg counts as an exp
 # "set" is the work per (sample × parameter set), "pair" the per-direction-pair geometry pass done
 # once per call and shared by the W sets (charged 1/W per sample·set). Per-set parameter tables
