@@ -26,8 +26,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import subprocess
-import sys
 import time
 from dataclasses import dataclass, field
 
@@ -39,6 +37,7 @@ from numba import prange
 from fitting import kernels, models
 from fitting.directions import uniform_hemisphere
 from fitting.kernels import njit  # the kernels' own flags, so ops cost what they cost there
+from simulator.variant import probe_variant
 
 __all__ = ["main", "CASES", "OPS"]
 
@@ -414,32 +413,13 @@ def check_mitsuba(f_mitsuba: np.ndarray, ours: np.ndarray, cos_o: np.ndarray) ->
 # -- Mitsuba --------------------------------------------------------------------------------------
 
 _MITSUBA_VARIANT = "llvm_ad_rgb"
-_MITSUBA_PROBE = f"""
-import mitsuba as mi, drjit as dr
-mi.set_variant('{_MITSUBA_VARIANT}')
-b = mi.load_dict({{'type': 'roughconductor', 'distribution': 'beckmann', 'alpha': 0.2}})
-si = dr.zeros(mi.SurfaceInteraction3f, 4)
-si.wi = mi.Vector3f(0, 0, 1)
-si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
-v = b.eval(mi.BSDFContext(), si, mi.Vector3f(0, 0, 1))
-dr.eval(v)
-print(float(v[0][0]) > 0)
-"""
 
 
 def mitsuba_unavailable() -> str | None:
     """Why the LLVM variant cannot be used here, or None. LLVM 15/16 abort the whole process
-    (DESIGN §7), so it is probed in a subprocess as tests/test_models_vs_mitsuba.py does."""
-    try:
-        res = subprocess.run(
-            [sys.executable, "-c", _MITSUBA_PROBE], capture_output=True, timeout=120
-        )
-    except subprocess.TimeoutExpired:
-        return f"{_MITSUBA_VARIANT} probe timed out"
-    if res.returncode != 0 or not res.stdout.strip().endswith(b"True"):
-        tail = res.stderr.decode(errors="replace").strip().splitlines()[-1:] or ["no output"]
-        return f"{_MITSUBA_VARIANT} unavailable ({tail[0][:120]})"
-    return None
+    (DESIGN §7), so it is probed in a child interpreter by the simulator's own probe."""
+    ok, reason = probe_variant(_MITSUBA_VARIANT)
+    return None if ok else f"{_MITSUBA_VARIANT} unavailable ({reason})"
 
 
 class MitsubaPeer:

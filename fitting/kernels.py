@@ -547,8 +547,14 @@ def _stage_f(geo, j0, fbuf, p1, p2, fresnel):
     """F(ω·h) for a chunk (the value: for the modules that combine it with other lobes)."""
     fden = np.empty(fbuf.size)
     _stage_f_frac(geo, j0, fbuf, fden, p1, p2, fresnel)
-    for i in range(fbuf.size):
-        fbuf[i] = fbuf[i] / fden[i]
+    _divide_in_place(fbuf, fden)
+
+
+@njit(cache=True)
+def _divide_in_place(num, den):
+    """num /= den element by element (a fraction stage's value, for callers that need it whole)."""
+    for i in range(num.size):
+        num[i] = num[i] / den[i]
 
 
 @njit(cache=True)
@@ -632,8 +638,7 @@ def _stage_g(geo, j0, gbuf, m, dist, shadow):
     """G/(4 cos θ_i cos θ_o) for a chunk (the value: for the modules that sum several lobes)."""
     gden = np.empty(gbuf.size)
     _stage_g_frac(geo, j0, gbuf, gden, m, dist, shadow)
-    for i in range(gbuf.size):
-        gbuf[i] = gbuf[i] / gden[i]
+    _divide_in_place(gbuf, gden)
 
 
 @njit(cache=True)
