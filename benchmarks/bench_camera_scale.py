@@ -267,7 +267,7 @@ def _child_reduce(run: Path, out: Path) -> dict:
     import calibration.darks
     import calibration.decode
     import calibration.reduce
-    from calibration.reduce import ReduceOptions, reduce_run
+    from calibration.reduce import ReduceOptions, reduce_to_file
 
     decode_s = [0.0]
     inner = calibration.decode.decode_frame
@@ -284,13 +284,14 @@ def _child_reduce(run: Path, out: Path) -> dict:
         mod.decode_frame = timed
     rss_before_mib = _peak_rss_mib()
     cpu0_s, t0 = _cpu_s(), time.perf_counter()
-    table = reduce_run(run, ReduceOptions(), out=out)
+    # As `gonio calibrate` does: written pose by pose, not read back.
+    done = reduce_to_file(run, ReduceOptions(), out=out)
     wall_s = time.perf_counter() - t0
     return {
         "reduce_s": wall_s,
         "reduce_cpu_s": _cpu_s() - cpu0_s,
         "decode_in_reduce_s": decode_s[0],
-        "samples": int(len(table.f)),
+        "samples": done.rows,
         "rss_before_mib": rss_before_mib,
         "peak_rss_mib": _peak_rss_mib(),
     }

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from acquisition.kinematics import Kinematics, look_at_rotation
@@ -117,8 +118,15 @@ def pixel_geometry(
     offset: float = 0.0,
     margin_m: float = 0.0,
     rotation: np.ndarray | None = None,
+    window: tuple[int, int, int, int] | None = None,
+    mask_only: bool = False,
 ) -> PixelGeometry:
     """Geometry for pixel centres u = offset + step·k (k = 0..W/step−1), same for v.
+
+    `window` = (x0, y0, x1, y1): only the pixels of that rectangle of the frame (x0, y0
+    multiples of `step`), u = x0 + offset + step·k (k = 0..(x1−x0)/step−1): the same values
+    as the whole frame's at those pixels. `mask_only`: only `on_sample` is filled (the other
+    arrays are 1 × 1 placeholders).
 
     With a 2×2 Bayer superpixel, step = 2 and offset = 0.5 put the ray through the centre of
     the four photosites. `rotation`: camera → sample frame (columns: camera axes); default the
@@ -126,27 +134,59 @@ def pixel_geometry(
     """
     cam = np.asarray(camera_pos_m, dtype=np.float64)
     light = np.asarray(light_pos_m, dtype=np.float64)
-    us = offset + step * np.arange(intr.width // step)
-    vs = offset + step * np.arange(intr.height // step)
-    uu, vv = np.meshgrid(us, vs)
-    x, y = intr.normalised(uu, vv)
-    d_cam = np.stack([x, y, np.ones_like(uu)], axis=-1)
-    rot = look_at_rotation(cam) if rotation is None else np.asarray(rotation)
-    d = d_cam @ rot.T
-    dz = d[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(dz < 0, -cam[2] / dz, np.nan)
-    p = cam + t[..., None] * d
-    p[..., 2] = 0.0
+    x0, y0, x1, y1 = (0, 0, intr.width, intr.height) if window is None else window
+    us = x0 + offset + step * np.arange((x1 - x0) // step)
+    vs = y0 + offset + step * np.arange((y1 - y0) // step)
+    if intr.distorted:
+        uu, vv = np.meshgrid(us, vs)
+        x, y = intr.normalised(uu, vv)
+    else:  # one value per column and per row, broadcast (no (H, W) arrays to build)
+        xs, ys = intr.normalised(us, vs)
+        x = np.broadcast_to(xs[None, :], (vs.size, us.size))
+        y = np.broadcast_to(ys[:, None], (vs.size, us.size))
+    rot = look_at_rotation(cam) if rotation is None else np.asarray(rotation, dtype=np.float64)
+    h, w = x.shape
+    shape3 = (h, w, 3) if not mask_only else (1, 1, 3)
+    geo = PixelGeometry(
+        np.empty(shape3), np.empty(shape3), np.empty(shape3),
+        np.empty((h, w) if not mask_only else (1, 1)), np.empty((h, w), bool),
+    )  # fmt: skip
     half = sample_size_m / 2.0 - margin_m
-    on = np.isfinite(t) & (np.abs(p[..., 0]) < half) & (np.abs(p[..., 1]) < half)
-    to_light = light - p
-    r = np.linalg.norm(to_light, axis=-1)
-    wi = to_light / r[..., None]
-    to_cam = cam - p
-    wo = to_cam / np.linalg.norm(to_cam, axis=-1, keepdims=True)
-    on &= (wi[..., 2] > 0) & (wo[..., 2] > 0)
-    return PixelGeometry(p, wi, wo, r, on)
+    arrays = (geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
+    _ray_geometry(x, y, rot, cam, light, half, mask_only, arrays)
+    return geo
+
+
+@numba.njit(cache=True)
+def _ray_geometry(x, y, rot, cam, light, half, mask_only, out):  # noqa: ANN001
+    """Per pixel: the ray d = R·(x, y, 1) from the camera cut with z = 0 at p = C + t·d
+    (t = −C_z/d_z, none when d_z ≥ 0), ω_i = (L − p)/|L − p|, ω_o = (C − p)/|C − p|, and on the
+    sample when |p_x|, |p_y| < `half` and both directions are above the surface. Written into
+    `out` = (point, ω_i, ω_o, distance to the light, on-sample mask) (only the mask with
+    `mask_only`)."""
+    point, wi, wo, dist, on = out
+    h, w = x.shape
+    for r in range(h):
+        for c in range(w):
+            xn, yn = x[r, c], y[r, c]
+            d0 = xn * rot[0, 0] + yn * rot[0, 1] + rot[0, 2]
+            d1 = xn * rot[1, 0] + yn * rot[1, 1] + rot[1, 2]
+            d2 = xn * rot[2, 0] + yn * rot[2, 1] + rot[2, 2]
+            t = -cam[2] / d2 if d2 < 0 else np.nan
+            p0 = cam[0] + t * d0
+            p1 = cam[1] + t * d1
+            l0, l1, l2 = light[0] - p0, light[1] - p1, light[2]
+            rl = np.sqrt(l0 * l0 + l1 * l1 + l2 * l2)
+            v0, v1, v2 = cam[0] - p0, cam[1] - p1, cam[2]
+            rv = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            wiz, woz = l2 / rl, v2 / rv
+            on[r, c] = np.isfinite(t) and abs(p0) < half and abs(p1) < half and wiz > 0 and woz > 0
+            if mask_only:
+                continue
+            point[r, c, 0], point[r, c, 1], point[r, c, 2] = p0, p1, 0.0
+            wi[r, c, 0], wi[r, c, 1], wi[r, c, 2] = l0 / rl, l1 / rl, wiz
+            wo[r, c, 0], wo[r, c, 1], wo[r, c, 2] = v0 / rv, v1 / rv, woz
+            dist[r, c] = rl
 
 
 def project_points(

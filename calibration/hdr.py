@@ -21,9 +21,10 @@ level, where the long exposure survives only when it fluctuated low.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
-__all__ = ["merge_brackets", "merge_brackets_local", "local_mean"]
+__all__ = ["merge_brackets", "merge_brackets_local", "merge_frames_local", "local_mean"]
 
 
 def merge_brackets(
@@ -156,3 +157,158 @@ def local_mean(flux: np.ndarray, valid: np.ndarray, *, cfa: bool) -> np.ndarray:
         with np.errstate(invalid="ignore", divide="ignore"):
             out[sl] = np.where(cnt > 0.5, tot / np.maximum(cnt, 1e-12), np.nan)
     return out
+
+
+def merge_frames_local(
+    dn: np.ndarray,
+    offset_dn: np.ndarray,
+    gain_e_per_dn: float,
+    white_dn: float,
+    exposures_s: list[float],
+    read_noise_e: np.ndarray,
+    *,
+    valid: np.ndarray | None = None,
+    cfa: bool = False,
+    margin_sigma: float = 5.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`merge_brackets_local` from the raw frames in one compiled pass per step (the same
+    maths, without its whole-image float64 temporaries: about 20 of them per bracket).
+
+    ``dn``: the brackets' raw values (B, H, W) or (B, H, W, C); ``offset_dn``: the value each
+    one reads at zero signal (the master dark of its exposure, or the black level broadcast),
+    same shape. Electrons are (DN − offset)·gain, a bracket is saturated at DN ≥ white − ½
+    and clips at (white − offset)·gain electrons, as calibration.planes.merge_pose forms them
+    for `merge_brackets_local`. Returns (flux e/s, variance (e/s)², all_saturated mask).
+    """
+    b = dn.shape[0]
+    if offset_dn.shape != dn.shape:
+        raise ValueError(f"offset_dn shape {offset_dn.shape} ≠ dn shape {dn.shape}")
+    four = dn.ndim == 4
+    dn4 = dn if four else dn[..., None]
+    off4 = offset_dn if four else offset_dn[..., None]
+    shape = dn4.shape[1:]
+    ok_valid = np.ones(shape, bool) if valid is None else np.asarray(valid, bool)
+    if ok_valid.ndim == 2:
+        ok_valid = np.broadcast_to(ok_valid[..., None], shape)
+    t = np.asarray(exposures_s, dtype=np.float64)
+    read_e = np.broadcast_to(np.asarray(read_noise_e, dtype=np.float64), t.shape).copy()
+    if t.size != b:
+        raise ValueError(f"{t.size} exposures for {b} brackets")
+    flux = np.empty(shape)
+    var = np.empty(shape)
+    all_sat = np.empty(shape, bool)
+    _merge_local_kernel(
+        dn4,
+        off4,
+        float(gain_e_per_dn),
+        float(white_dn),
+        t,
+        read_e,
+        ok_valid,
+        2 if cfa else 1,
+        float(margin_sigma),
+        (flux, var, all_sat),
+    )
+    if not four:
+        flux, var, all_sat = flux[..., 0], var[..., 0], all_sat[..., 0]
+    return flux, var, all_sat
+
+
+@numba.njit(cache=True)
+def _own_merge(s, ok, t, var_read, order, shortest):  # noqa: ANN001, ANN202
+    """`merge_brackets` for one pixel with own-value weights, 2 iterations → (Φ, all_sat)."""
+    phi = np.nan
+    for i in order:
+        if ok[i]:
+            phi = s[i] / t[i]
+            break
+    if np.isnan(phi):
+        return s[shortest] / t[shortest], True
+    for _ in range(2):
+        phi = _weighted(s, ok, t, var_read, phi)[0]
+    return phi, False
+
+
+@numba.njit(cache=True)
+def _weighted(s, ok, t, var_read, ref):  # noqa: ANN001, ANN202
+    """(Σ wᵢ sᵢ/tᵢ / Σ wᵢ, Σ wᵢ) with wᵢ = tᵢ²/(max(ref, 0)·tᵢ + σ²ᵢ) on kept brackets, summed
+    in bracket order as numpy's axis-0 sums are (0 where no bracket is kept)."""
+    ref = max(ref, 0.0)
+    wsum = 0.0
+    acc = 0.0
+    for i in range(s.shape[0]):
+        w = t[i] ** 2 / (ref * t[i] + var_read[i]) if ok[i] else 0.0
+        wsum += w
+        acc += w * s[i] / t[i]
+    return (acc / wsum if wsum > 0 else 0.0), wsum
+
+
+@numba.njit(cache=True)
+def _electrons(dn, off, gain, white, y, x, c, s, ok):  # noqa: ANN001
+    """One pixel's brackets in electrons into `s`, and `ok` = not saturated (DN ≥ white − ½)."""
+    for i in range(dn.shape[0]):
+        v = np.float64(dn[i, y, x, c])
+        s[i] = (v - off[i, y, x, c]) * gain
+        ok[i] = not (v >= white - 0.5)
+
+
+@numba.njit(cache=True, parallel=True)
+def _merge_local_kernel(dn, off, gain, white, t, read_e, valid, stride, margin, out):  # noqa: ANN001
+    """Both steps of merge_frames_local: (1) the own-value merge of every pixel that may serve
+    as a neighbour (valid ones); (2) per pixel, the neighbours' mean flux (same colour: `stride`
+    2 in a mosaic), the brackets near the clip dropped by it, and the merge weighted by it
+    (`merge_brackets_local`'s steps 2–4). Rows run in parallel; every pixel's arithmetic is
+    its own, so the result does not depend on the number of threads."""
+    flux, var, all_sat = out
+    nb, h, w, nc = dn.shape
+    var_read = np.maximum(read_e**2, 1e-12)
+    order = np.argsort(t)[::-1]
+    shortest = np.argmin(t)
+    first = np.empty((h, w, nc))
+    usable = np.zeros((h, w, nc), np.bool_)
+    for y in numba.prange(h):
+        s = np.empty(nb)
+        ok = np.empty(nb, np.bool_)
+        for x in range(w):
+            for c in range(nc):
+                if valid[y, x, c]:
+                    _electrons(dn, off, gain, white, y, x, c, s, ok)
+                    phi, sat = _own_merge(s, ok, t, var_read, order, shortest)
+                    first[y, x, c] = phi
+                    usable[y, x, c] = not sat
+    for y in numba.prange(h):
+        s = np.empty(nb)
+        ok = np.empty(nb, np.bool_)
+        for x in range(w):
+            for c in range(nc):
+                tot = 0.0
+                cnt = 0
+                for dy in (-stride, 0, stride):
+                    for dx in (-stride, 0, stride):
+                        yy, xx = y + dy, x + dx
+                        if (dy or dx) and 0 <= yy < h and 0 <= xx < w and usable[yy, xx, c]:
+                            tot += first[yy, xx, c]
+                            cnt += 1
+                _electrons(dn, off, gain, white, y, x, c, s, ok)
+                if cnt:
+                    local = tot / cnt
+                    ref = max(local, 0.0)
+                else:  # no neighbour: the pixel's own merge (merge_brackets_local's fallback)
+                    local = _own_merge(s, ok, t, var_read, order, shortest)[0]
+                    ref = max(local, 0.0)
+                for i in range(nb):
+                    clip = (white - off[i, y, x, c]) * gain
+                    expected = ref * t[i]
+                    near = expected + margin * np.sqrt(expected + read_e[i] ** 2) >= clip
+                    ok[i] = ok[i] and not near
+                if not ok.any():  # every bracket dropped: the shortest's value, unknown
+                    flux[y, x, c] = s[shortest] / t[shortest]
+                    var[y, x, c], all_sat[y, x, c] = np.inf, True
+                    continue
+                # Without neighbours the weights come from the pixel's own merge with the kept
+                # brackets, as merge_brackets(flux_for_weights=local) falls back where NaN.
+                ref_w = local if cnt else _own_merge(s, ok, t, var_read, order, shortest)[0]
+                est, wsum = _weighted(s, ok, t, var_read, ref_w)
+                flux[y, x, c] = est
+                var[y, x, c] = 1.0 / wsum if wsum > 0 else np.inf
+                all_sat[y, x, c] = False

@@ -25,7 +25,7 @@ from calibration.darks import DarkLibrary
 from calibration.flatfield import FlatField
 from calibration.geometry import Intrinsics, PixelGeometry, RigGeometry, pixel_geometry
 from calibration.geometry import project_points as _project
-from calibration.hdr import merge_brackets_local
+from calibration.hdr import merge_frames_local
 from calibration.radiometry import CameraRadiometry
 from calibration.segmentation import segment_sample
 from plumbing.errors import UserError
@@ -35,6 +35,8 @@ __all__ = [
     "RunCalibration",
     "Plane",
     "pose_planes",
+    "footprint_window",
+    "Window",
     "block_mean",
     "block_all",
     "block_any",
@@ -91,6 +93,9 @@ class Plane:
     offset: float
     step: int
     sites: int
+    # The frame's photosite (x, y) at the plane's corner: planes cover the window around the
+    # sample's footprint (`footprint_window`), pixel u of the plane is x0 + offset + step·u.
+    origin: tuple[int, int] = (0, 0)
 
 
 def block_mean(a: np.ndarray, b: int) -> np.ndarray:
@@ -148,51 +153,122 @@ def _channels_of(flux, var, sat, channels: str, cfa_pattern: str | None):
     )
 
 
-def merge_pose(cal: RunCalibration, decoded, exposures, on_sample=None):
-    """Dark-subtract, convert to electrons, HDR-merge and flat-correct at full resolution.
+@dataclass(frozen=True)
+class Window:
+    """A rectangle of the frame, photosites x0 ≤ x < x1, y0 ≤ y < y1."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+
+    @classmethod
+    def whole(cls, shape: tuple[int, ...]) -> Window:
+        return cls(0, 0, int(shape[1]), int(shape[0]))
+
+    def of(self, a: np.ndarray) -> np.ndarray:
+        """The window of a frame-shaped array (H, W) or (H, W, C): a view, not a copy."""
+        return a[self.y0 : self.y1, self.x0 : self.x1]
+
+    def flat(self, flat: FlatField) -> FlatField:
+        return FlatField(self.of(flat.gain), self.of(flat.rel_var), flat.exposure_s, flat.n_frames)
+
+    @property
+    def bounds(self) -> tuple[int, int, int, int]:
+        return self.x0, self.y0, self.x1, self.y1
+
+
+#: Points per side of the sample square projected to bound its image (a distorted side bows).
+_SIDE_POINTS = 33
+
+
+def footprint_window(
+    cal: RunCalibration,
+    camera: tuple[np.ndarray, np.ndarray],
+    size_m: float,
+    step: int,
+    shape: tuple[int, ...],
+) -> Window | None:
+    """The part of a frame (`shape`) a pose's reduction needs: the bounding box of the image of
+    the square of side `size_m` (its sides projected through the camera model, distortion
+    included), widened by what looks beyond it — the segmentation's edge search (its band, the
+    ±1 px step and the bilinear neighbour, in colour-plane pixels of `step` photosites) and the
+    HDR merge's same-colour neighbours (2 photosites) — and aligned to whole regions of
+    `step` × bin_px photosites, so every plane, region and block is the whole frame's. Pixels
+    outside it cannot be on the sample or in its search band, so the samples are the whole
+    frame's. None (use the whole frame) when the square is not wholly in front of the camera
+    or the window would be empty or the whole frame."""
+    cam_pos, rot = camera
+    half = size_m / 2.0
+    corners = np.array([[-half, -half], [half, -half], [half, half], [-half, half], [-half, -half]])
+    s = np.linspace(0.0, 1.0, _SIDE_POINTS)[:, None]
+    sides = zip(corners[:-1], corners[1:], strict=True)
+    edges = np.concatenate([a + s * (b - a) for a, b in sides])
+    points = np.column_stack([edges, np.zeros(len(edges))])
+    if np.any((points - cam_pos) @ rot[:, 2] <= 0):  # behind the camera: no bounded image
+        return None
+    uv = _project(cal.intrinsics, cam_pos, points, rot)
+    if not np.all(np.isfinite(uv)):
+        return None
+    pad = (math.ceil(cal.options.segment_band_px) + 4) * step + 2
+    align = step * max(1, int(cal.options.bin_px))
+    h, w = int(shape[0]), int(shape[1])
+    x0 = max(0, (math.floor(uv[:, 0].min()) - pad) // align * align)
+    y0 = max(0, (math.floor(uv[:, 1].min()) - pad) // align * align)
+    x1 = min(w, -(-(math.ceil(uv[:, 0].max()) + pad + 1) // align) * align)
+    y1 = min(h, -(-(math.ceil(uv[:, 1].max()) + pad + 1) // align) * align)
+    if x1 <= x0 or y1 <= y0 or (x0, y0, x1, y1) == (0, 0, w, h):
+        return None
+    return Window(x0, y0, x1, y1)
+
+
+def merge_pose(cal: RunCalibration, decoded, exposures, on_sample=None, window=None):
+    """Dark-subtract, convert to electrons, HDR-merge and flat-correct at full resolution,
+    within `window` (a `Window` of the frames; None: the whole frame).
 
     Returns flux (e/s per photosite or pixel, flat-corrected), its variance and the
     all-brackets-saturated mask, in the frames' own layout.
     """
     radiometry, darks, flat = cal.radiometry, cal.darks, cal.flat
     k = radiometry.gain_e_per_dn
-    electrons, sats, noise_sd, clip_e = [], [], [], []
-    white = radiometry.white_level_dn
     shape = decoded[0].dn.shape
+    cut = Window.whole(shape) if window is None else window
+    dn, offsets, noise_sd = [], [], []
     for d, t in zip(decoded, exposures, strict=True):
-        dn = np.asarray(d.dn, dtype=np.float64)
-        if dn.shape != shape:
-            raise PlaneError(f"{d.path}: frame shape {dn.shape} differs from {shape}")
-        # The camera's clip level (full well), which can sit far below the ADC's white level.
-        sats.append(radiometry.saturated(dn))
+        if d.dn.shape != shape:
+            raise PlaneError(f"{d.path}: frame shape {d.dn.shape} differs from {shape}")
+        dn.append(cut.of(d.dn))
         if darks is not None:
             dark = darks.for_exposure(t)  # CalibrationFrameError names the missing exposure
-            electrons.append((dn - dark.dn) * k)
-            clip_e.append((white - dark.dn) * k)  # the clip in dark-subtracted electrons
+            dark_dn = cut.of(dark.dn) if np.ndim(dark.dn) >= 2 else dark.dn
+            offsets.append(np.broadcast_to(dark_dn, dn[-1].shape))
             # Signal-independent variance: the frame's own (measured) dark noise plus that of
             # the master subtracted from it.
             noise_sd.append(k * math.sqrt(dark.temporal_var_dn2 + dark.master_var_dn2))
         else:
-            electrons.append(radiometry.electrons(dn))
-            clip_e.append((white - radiometry.black_level_dn) * k)
+            offsets.append(np.broadcast_to(float(radiometry.black_level_dn), dn[-1].shape))
             noise_sd.append(math.sqrt(radiometry.read_noise_e**2 + k**2 / 12.0))
-    # Weights, variance and the choice of brackets from the neighbours' flux, never the pixel's
-    # own noisy value (calibration.hdr.merge_brackets_local: own-value weights and saturation
-    # tests bias the flux and any σ-weighted fit by O(1/N_electrons)). Off-sample neighbours
-    # (holder, background) do not enter the local estimate.
-    flux, var, all_sat = merge_brackets_local(
-        electrons,
+    # Electrons (DN − dark or black)·gain; a bracket is saturated at the camera's clip level
+    # (full well, which can sit far below the ADC's white level) and clips at (white − dark)·gain.
+    # Weights, variance and the choice of brackets come from the neighbours' flux, never the
+    # pixel's own noisy value (calibration.hdr.merge_brackets_local, whose maths
+    # merge_frames_local computes without whole-frame temporaries: own-value weights and
+    # saturation tests bias the flux and any σ-weighted fit by O(1/N_electrons)).
+    # Off-sample neighbours (holder, background) do not enter the local estimate.
+    flux, var, all_sat = merge_frames_local(
+        np.stack(dn),
+        np.stack(offsets),
+        k,
+        radiometry.white_level_dn,
         exposures,
-        sats,
         np.asarray(noise_sd),
-        clip_e,
         valid=on_sample,
         cfa=decoded[0].channels == "CFA",
     )
     if flat is not None:
-        if flat.gain.shape != flux.shape:
-            raise PlaneError(f"flat field shape {flat.gain.shape} ≠ frame {flux.shape}")
-        flux, var = flat.apply(flux, var)
+        if flat.gain.shape != shape:
+            raise PlaneError(f"flat field shape {flat.gain.shape} ≠ frame {shape}")
+        flux, var = cut.flat(flat).apply(flux, var)
     return flux, var, all_sat
 
 
@@ -202,15 +278,27 @@ def pose_planes(
     exposures,
     axes_measured: dict[str, float],
     size_m: float | None = None,
+    *,
+    crop: bool = True,
 ) -> tuple[list[Plane], np.ndarray | None]:
     """Merge a pose's brackets and split it into colour planes with their geometry; also the
     image segmentation of the flat square of side `size_m` (the sample's by default; the
-    reference target's for its captures) — bool at channel resolution, None if disabled."""
+    reference target's for its captures) — bool at channel resolution, None if disabled.
+    With `crop` (default) only the window around the square's image is processed
+    (`footprint_window`: the same samples, a fraction of the work on a large sensor)."""
     opts, intr = cal.options, cal.intrinsics
     size_m = cal.sample_size_m if size_m is None else size_m
     cam_pos, light_pos, rot = cal.geometry.positions(axes_measured)
+    first = decoded[0]
+    cfa = first.channels == "CFA"
+    window = (
+        footprint_window(cal, (cam_pos, rot), size_m, 2 if cfa else 1, first.dn.shape)
+        if crop
+        else None
+    )
+    window = window or Window.whole(first.dn.shape)
 
-    def geometry(step: int = 1, offset: float = 0.0) -> PixelGeometry:
+    def geometry(step: int = 1, offset: float = 0.0, mask_only: bool = False) -> PixelGeometry:
         return pixel_geometry(
             intr,
             cam_pos,
@@ -220,14 +308,19 @@ def pose_planes(
             offset=offset,
             margin_m=max(opts.margin_m, _pointing_margin_m(cal, cam_pos)),
             rotation=rot,
+            window=window.bounds,
+            mask_only=mask_only,
         )
 
     # Where each full-resolution pixel (photosite) lands on the sample, edge margin included.
-    on_full = geometry().on_sample
-    flux_all, var_all, sat_all = merge_pose(cal, decoded, exposures, on_sample=on_full)
-    names, fluxes, variances, sats, step, offsets, sites = _channels_of(
-        flux_all, var_all, sat_all, decoded[0].channels, decoded[0].cfa_pattern
+    on_full = geometry(mask_only=True).on_sample
+    flux_all, var_all, sat_all = merge_pose(
+        cal, decoded, exposures, on_sample=on_full, window=window
     )
+    names, fluxes, variances, sats, step, offsets, sites = _channels_of(
+        flux_all, var_all, sat_all, first.channels, first.cfa_pattern
+    )
+    origin = (window.x0, window.y0)
     geos: dict[float, PixelGeometry] = {}
     # A superpixel is on the sample only if every photosite of it is: at grazing views one
     # photosite spans more than the edge margin, so the centroid's test is not enough.
@@ -242,21 +335,23 @@ def pose_planes(
                 geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample & sites_on
             )
         planes.append(
-            Plane(name, fluxes[c], variances[c], sats[c], geo, offsets[c], step, sites[c])
+            Plane(name, fluxes[c], variances[c], sats[c], geo, offsets[c], step, sites[c], origin)
         )
     seg = None
     if opts.segment:
-        seg = _segment(cal, fluxes, variances, sats, (cam_pos, rot), size_m, step)
+        seg = _segment(cal, fluxes, variances, sats, (cam_pos, rot), size_m, step, origin)
     return planes, seg
 
 
-def _segment(cal: RunCalibration, fluxes, variances, sats, camera, size_m, step):
+def _segment(cal: RunCalibration, fluxes, variances, sats, camera, size_m, step, origin):
     """The image of all colours together (a superpixel per value for a mosaic) segmented
-    around the square's projected corners, in that image's pixel coordinates."""
+    around the square's projected corners, in that image's pixel coordinates (the planes'
+    window, whose corner is the frame's photosite `origin`)."""
     cam_pos, rot = camera
     half = size_m / 2.0
     corners_m = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]])
-    corners = (_project(cal.intrinsics, cam_pos, corners_m, rot) - (step - 1) / 2.0) / step
+    uv = _project(cal.intrinsics, cam_pos, corners_m, rot) - np.asarray(origin, dtype=np.float64)
+    corners = (uv - (step - 1) / 2.0) / step
     image = np.sum(fluxes, axis=0)
     noise = np.sqrt(np.sum(variances, axis=0))
     # A pixel saturated in every bracket is bright whatever its merged value says.

@@ -42,6 +42,7 @@ import json
 import math
 import sys
 from collections import defaultdict
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,12 +75,12 @@ from calibration.reference import (
 )
 from calibration.texels import TexelGrid, check_replace
 from fitting.directions import vector_to_spherical
-from fitting.samples import Flags, SampleTable, write_samples
+from fitting.samples import Flags, SampleStream, SampleTable, read_samples, write_samples_streamed
 from plumbing.atomic import check_writable_dir
 from plumbing.errors import UserError
 from plumbing.progress import Progress
 
-__all__ = ["ReduceOptions", "CalibrationError", "reduce_run"]
+__all__ = ["ReduceOptions", "CalibrationError", "ReducedSamples", "reduce_run", "reduce_to_file"]
 
 CALIBRATION_VERSION = "3"  # 3: σ is statistical only; shared errors in gonio.budget
 
@@ -117,6 +118,17 @@ class ReduceOptions:
     strict: bool = False
 
 
+@dataclass(frozen=True)
+class ReducedSamples:
+    """What `reduce_to_file` wrote: the samples file, its row count and metadata, and the
+    number of texels holding samples (per-texel reductions; else None)."""
+
+    path: Path
+    rows: int
+    metadata: dict[str, str]
+    texels: int | None = None
+
+
 def reduce_run(
     run_dir: str | Path,
     options: ReduceOptions | None = None,
@@ -124,7 +136,21 @@ def reduce_run(
     out: str | Path | None = None,
     progress: bool = False,
 ) -> SampleTable:
-    """Reduce `run_dir` and write `samples.parquet` into it (or to `out`)."""
+    """Reduce `run_dir`, write `samples.parquet` into it (or to `out`) and return the table as
+    written (read back: the reduction itself keeps only one pose's samples in memory)."""
+    done = reduce_to_file(run_dir, options, out=out, progress=progress)
+    return read_samples(done.path)
+
+
+def reduce_to_file(
+    run_dir: str | Path,
+    options: ReduceOptions | None = None,
+    *,
+    out: str | Path | None = None,
+    progress: bool = False,
+) -> ReducedSamples:
+    """Reduce `run_dir` into `samples.parquet` (or `out`), pose by pose: each pose's samples go
+    to the file as they are made, so memory does not grow with the number of poses."""
     run_dir = Path(run_dir)
     # Closed on the way out: a long-lived process (study, report) must not leak SQLite handles.
     with RunStore.open(run_dir) as store:
@@ -226,7 +252,7 @@ def _reduce_open_run(
     options: ReduceOptions,
     out: str | Path | None,
     progress: bool,
-) -> SampleTable:
+) -> ReducedSamples:
     default = "samples-texels.parquet" if options.texel_mm else "samples.parquet"
     dest = Path(out) if out is not None else run_dir / default
     # A run on read-only media (an archive, a colleague's share) is read, never written: say so
@@ -235,42 +261,51 @@ def _reduce_open_run(
     cal, rig = _run_calibration(store, run_dir, options)
     by_pose = _captures_by_pose(store, run_dir)
     scale = _radiometric_scale(cal, rig)
-    cols: dict[str, list[np.ndarray]] = defaultdict(list)
     skipped: list[dict] = []
-    monitors: list[float] = []  # per pose, for the report's drift plot
-    arm_poses: dict[int, dict] = {}  # per capture: the arms' pose (fitting.nuisance)
-    iterator = sorted(by_pose.items())
-    with Progress("calibrating", len(iterator), enabled=progress, transient=True) as bar:
-        for _pose_index, recs in iterator:
-            good, decoded = _decode_pose(recs, run_dir, skipped, options.strict)
-            if good:
-                monitor = _monitor_factor(good, rig.light.level) if options.light_monitor else 1.0
-                monitors.append(monitor)
-                try:
-                    _reduce_pose(cal, good, decoded, scale.intensity * monitor, cols)
-                    arm_poses[good[0].id] = _arm_pose(cal, good[0])
-                except (PlaneError, CalibrationFrameError) as exc:
-                    raise CalibrationError(f"{run_dir}: {exc}") from None
-            bar.advance()
-    if not cols:
-        # One line, no warnings before it: the error names the first frame that failed.
-        if skipped and len(skipped) == sum(len(r) for r in by_pose.values()):
-            raise CalibrationError(f"{run_dir}: no frame could be decoded ({skipped[0]['reason']})")
-        raise CalibrationError(f"{run_dir}: no pixel of any frame falls on the sample")
+    texels: set[int] = set()
+    metadata: dict[str, str] = {}
+
+    def produce(stream: SampleStream) -> dict[str, str]:
+        monitors: list[float] = []  # per pose, for the report's drift plot
+        arm_poses: dict[int, dict] = {}  # per capture: the arms' pose (fitting.nuisance)
+        iterator = sorted(by_pose.items())
+        with Progress("calibrating", len(iterator), enabled=progress, transient=True) as bar:
+            for _pose_index, recs in iterator:
+                good, decoded = _decode_pose(recs, run_dir, skipped, options.strict)
+                if good:
+                    level = rig.light.level
+                    monitor = _monitor_factor(good, level) if options.light_monitor else 1.0
+                    monitors.append(monitor)
+                    try:
+                        for piece in _reduce_pose(cal, good, decoded, scale.intensity * monitor):
+                            stream.append(piece)
+                            if "texel" in piece:
+                                texels.update(np.unique(piece["texel"]).tolist())
+                        arm_poses[good[0].id] = _arm_pose(cal, good[0])
+                    except (PlaneError, CalibrationFrameError) as exc:
+                        raise CalibrationError(f"{run_dir}: {exc}") from None
+                del decoded  # the pose's frames go before the next pose's are decoded
+                bar.advance()
+        if not stream.rows:
+            # One line, no warnings before it: the error names the first frame that failed.
+            if skipped and len(skipped) == sum(len(r) for r in by_pose.values()):
+                reason = skipped[0]["reason"]
+                raise CalibrationError(f"{run_dir}: no frame could be decoded ({reason})")
+            raise CalibrationError(f"{run_dir}: no pixel of any frame falls on the sample")
+        metadata.update(
+            {
+                **_metadata(cal, rig, scale, skipped, monitors),
+                **_budget(rig, scale, RunDocument.of(store).arm_offsets),
+                "gonio.arm_poses": json.dumps(_with_approach(arm_poses)),
+            }
+        )
+        if options.texel_mm:
+            check_replace(dest, metadata)  # before the file replaces anything
+        return metadata
+
+    rows = write_samples_streamed(dest, produce)
     _warn_skipped(skipped)
-    budget = _budget(rig, scale, RunDocument.of(store).arm_offsets)
-    table = _table(
-        cols,
-        {
-            **_metadata(cal, rig, scale, skipped, monitors),
-            **budget,
-            "gonio.arm_poses": json.dumps(_with_approach(arm_poses)),
-        },
-    )
-    if options.texel_mm:
-        check_replace(dest, table.metadata)
-    write_samples(dest, table)
-    return table
+    return ReducedSamples(dest, rows, metadata, len(texels) if options.texel_mm else None)
 
 
 def _warn_skipped(skipped: list[dict]) -> None:
@@ -284,32 +319,6 @@ def _warn_skipped(skipped: list[dict]) -> None:
         f"warning: {len(skipped)} capture(s) skipped (unreadable or changed frames), "
         f"first {skipped[0]['frame']}",
         file=sys.stderr,
-    )
-
-
-def _table(cols: dict[str, list[np.ndarray]], metadata: dict[str, str]) -> SampleTable:
-    """The samples of every pose as one table; empties `cols`. Each column's per-pose pieces are
-    dropped as soon as that column is joined, and columns already of the table's dtype are not
-    copied again (at 500 poses of 2448 × 2048 the copies were 0.7 GB of a 6 GB peak,
-    benchmarks/bench_camera_scale.py). The pieces' memory mostly stays with the process (the
-    allocator's heap), so the join still costs about the samples' size once more."""
-    cat = {k: np.concatenate(cols.pop(k)) for k in list(cols)}
-    return SampleTable(
-        theta_i=cat["theta_i"],
-        phi_i=cat["phi_i"],
-        theta_o=cat["theta_o"],
-        phi_o=cat["phi_o"],
-        channel=cat["channel"],
-        f=cat["f"],
-        sigma=cat["sigma"],
-        flags=cat["flags"].astype(np.int32, copy=False),
-        extra={
-            "capture_id": cat["capture_id"].astype(np.int64, copy=False),
-            "pixel_x": cat["pixel_x"].astype(np.int32, copy=False),
-            "pixel_y": cat["pixel_y"].astype(np.int32, copy=False),
-            **({"texel": cat["texel"].astype(np.int32, copy=False)} if "texel" in cat else {}),
-        },
-        metadata=metadata,
     )
 
 
@@ -662,8 +671,8 @@ def _with_approach(poses: dict[int, dict]) -> dict[str, dict]:
     return out
 
 
-def _reduce_pose(cal: RunCalibration, recs, decoded, intensity, cols) -> None:
-    """Append the samples of one pose to `cols`."""
+def _reduce_pose(cal: RunCalibration, recs, decoded, intensity) -> Iterator[dict[str, np.ndarray]]:
+    """The samples of one pose, one dict of columns per colour plane."""
     exposures = [float(r.exposure_s) for r in recs]
     planes, seg = pose_planes(cal, decoded, exposures, recs[0].axes_measured)
     k_rad = cal.radiometry.radiance_per_electron_rate
@@ -681,8 +690,8 @@ def _reduce_pose(cal: RunCalibration, recs, decoded, intensity, cols) -> None:
         ti, pi = vector_to_spherical(wi[on])
         to, po = vector_to_spherical(wo[on])
         ys, xs = np.nonzero(on)
-        px = (xs * b + (b - 1) / 2.0) * pl.step + pl.offset
-        py = (ys * b + (b - 1) / 2.0) * pl.step + pl.offset
+        px = (xs * b + (b - 1) / 2.0) * pl.step + pl.offset + pl.origin[0]
+        py = (ys * b + (b - 1) / 2.0) * pl.step + pl.offset + pl.origin[1]
         scale = k_rad / pl.sites  # summed greens count twice the photosite area
         if pl.name != "Y":
             i_c = float(intensity[min(c, len(intensity) - 1)])
@@ -706,20 +715,23 @@ def _reduce_pose(cal: RunCalibration, recs, decoded, intensity, cols) -> None:
             snr = f_reg / sigma_reg
         flags[~(snr >= cal.options.min_snr)] |= Flags.DARK
         n = f_reg.shape[0]
-        cols["theta_i"].append(ti)
-        cols["phi_i"].append(pi)
-        cols["theta_o"].append(to)
-        cols["phi_o"].append(po)
-        cols["channel"].append(np.full(n, pl.name, dtype=object))
-        cols["f"].append(f_reg)
-        cols["sigma"].append(sigma_reg)
-        cols["flags"].append(flags)
-        cols["capture_id"].append(np.full(n, recs[0].id, dtype=np.int64))
-        cols["pixel_x"].append(np.round(px).astype(np.int32))
-        cols["pixel_y"].append(np.round(py).astype(np.int32))
+        piece = {
+            "theta_i": ti,
+            "phi_i": pi,
+            "theta_o": to,
+            "phi_o": po,
+            "channel": np.full(n, pl.name, dtype=object),
+            "f": f_reg,
+            "sigma": sigma_reg,
+            "flags": flags,
+            "capture_id": np.full(n, recs[0].id, dtype=np.int64),
+            "pixel_x": np.round(px).astype(np.int32),
+            "pixel_y": np.round(py).astype(np.int32),
+        }
         if cal.options.texel_mm:
             grid = TexelGrid(cal.options.texel_mm * 1e-3, cal.sample_size_m)
-            cols["texel"].append(grid.index(block_mean(geo.point_m, b)[on]))
+            piece["texel"] = grid.index(block_mean(geo.point_m, b)[on]).astype(np.int32)
+        yield piece
 
 
 def _select(pl, seg, options):
@@ -748,5 +760,6 @@ def _select(pl, seg, options):
         pl.offset + m * pl.step,
         pl.step * b,
         pl.sites,
+        pl.origin,
     )
     return picked, pick(off_image), 1

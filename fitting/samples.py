@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NoReturn
@@ -34,6 +35,8 @@ __all__ = [
     "SamplesError",
     "read_samples",
     "write_samples",
+    "write_samples_streamed",
+    "SampleStream",
 ]
 
 SCHEMA_VERSION = 1
@@ -137,22 +140,28 @@ class SampleTable:
         return self.select(ok)
 
 
-def write_samples(path: str | os.PathLike, table: SampleTable) -> Path:
-    """Write atomically (temp file, fsync, rename) with units and schema version in metadata."""
-    path = Path(path)
-    cols = {
-        "theta_i": pa.array(table.theta_i, pa.float64()),
-        "phi_i": pa.array(table.phi_i, pa.float64()),
-        "theta_o": pa.array(table.theta_o, pa.float64()),
-        "phi_o": pa.array(table.phi_o, pa.float64()),
-        "channel": pa.array(table.channel.astype(str), pa.string()),
-        "f": pa.array(table.f, pa.float64()),
-        "sigma": pa.array(table.sigma, pa.float64()),
-        "flags": pa.array(np.asarray(table.flags, dtype=np.int32), pa.int32()),
+def _arrow_columns(cols: dict[str, np.ndarray]) -> dict[str, pa.Array]:
+    """The Arrow columns of a samples table (required, then optional ones in `cols`' order)."""
+    out = {
+        "theta_i": pa.array(cols["theta_i"], pa.float64()),
+        "phi_i": pa.array(cols["phi_i"], pa.float64()),
+        "theta_o": pa.array(cols["theta_o"], pa.float64()),
+        "phi_o": pa.array(cols["phi_o"], pa.float64()),
+        "channel": pa.array(np.asarray(cols["channel"]).astype(str), pa.string()),
+        "f": pa.array(cols["f"], pa.float64()),
+        "sigma": pa.array(cols["sigma"], pa.float64()),
+        "flags": pa.array(np.asarray(cols["flags"], dtype=np.int32), pa.int32()),
     }
-    for name, values in table.extra.items():
+    for name, values in cols.items():
+        if name in out:
+            continue
         dtype = OPTIONAL_COLUMNS.get(name)
-        cols[name] = pa.array(values, dtype) if dtype is not None else pa.array(values)
+        out[name] = pa.array(values, dtype) if dtype is not None else pa.array(values)
+    return out
+
+
+def _file_metadata(metadata: dict[str, str]) -> dict[str, str]:
+    """The file's key-value metadata: schema version and units, then the table's own."""
     meta = {
         "gonio.schema_version": str(SCHEMA_VERSION),
         "gonio.units": json.dumps(
@@ -166,12 +175,107 @@ def write_samples(path: str | os.PathLike, table: SampleTable) -> Path:
             }
         ),
     }
-    meta.update(table.metadata)
-    arrow = pa.table(cols).replace_schema_metadata(
+    meta.update(metadata)
+    return meta
+
+
+def write_samples(path: str | os.PathLike, table: SampleTable) -> Path:
+    """Write atomically (temp file, fsync, rename) with units and schema version in metadata."""
+    path = Path(path)
+    cols = {
+        "theta_i": table.theta_i,
+        "phi_i": table.phi_i,
+        "theta_o": table.theta_o,
+        "phi_o": table.phi_o,
+        "channel": table.channel,
+        "f": table.f,
+        "sigma": table.sigma,
+        "flags": table.flags,
+        **table.extra,
+    }
+    meta = _file_metadata(table.metadata)
+    arrow = pa.table(_arrow_columns(cols)).replace_schema_metadata(
         {k.encode(): v.encode() for k, v in meta.items()}
     )
     atomic_write_with(path, lambda fh: pq.write_table(arrow, fh), overwrite=True)
     return path
+
+
+class SampleStream:
+    """A samples table written piece by piece (a calibration writes each pose's samples as it
+    goes, so its memory does not grow with the number of poses). Pieces are dicts of the
+    table's columns (``channel``, ``f``, … and optional columns), buffered into row groups of
+    about `ROW_GROUP_ROWS` rows; the metadata is given at the end, when it is known. Made by
+    `write_samples_streamed`, which keeps the write atomic."""
+
+    ROW_GROUP_ROWS = 1 << 20  # ≈ 76 MB of buffered columns: small next to a pose's images
+
+    def __init__(self, fh) -> None:  # noqa: ANN001 (a binary file object)
+        self._fh = fh
+        self._writer: pq.ParquetWriter | None = None
+        self._buffer: list[dict[str, pa.Array]] = []
+        self._buffered = 0
+        self.rows = 0
+
+    def append(self, cols: dict[str, np.ndarray]) -> None:
+        n = int(np.asarray(cols["f"]).shape[0])
+        if n == 0:
+            return
+        self._buffer.append(_arrow_columns(cols))
+        self._buffered += n
+        self.rows += n
+        if self._buffered >= self.ROW_GROUP_ROWS:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._buffer:
+            return
+        table = pa.concat_tables(pa.table(piece) for piece in self._buffer)
+        self._buffer, self._buffered = [], 0
+        if self._writer is None:
+            # No stored Arrow schema: the file's key-value metadata, added at the end, is then
+            # what a reader sees as the schema's metadata (every column is a plain Parquet type).
+            self._writer = pq.ParquetWriter(self._fh, table.schema, store_schema=False)
+        self._writer.write_table(table)
+
+    def finish(self, metadata: dict[str, str]) -> None:
+        self._flush()
+        if self._writer is None:
+            raise ValueError("no samples were written")
+        self._writer.add_key_value_metadata(_file_metadata(metadata))
+        self._writer.close()
+
+    def abort(self) -> None:
+        """Close the writer after a failure, while its (temp) file is still open: the file is
+        thrown away, but a writer left to the garbage collector would write to a closed file."""
+        if self._writer is not None:
+            try:
+                self._writer.close()
+            except Exception:  # noqa: BLE001, S110 (the original error is the one to report)
+                pass
+            self._writer = None
+
+
+def write_samples_streamed(
+    path: str | os.PathLike, produce: Callable[[SampleStream], dict[str, str]]
+) -> int:
+    """Write a samples table atomically from pieces: ``produce(stream)`` appends them and
+    returns the table's metadata; the file appears (temp file, fsync, rename, replacing an
+    earlier one) only if it returns; an exception leaves no file. Returns the rows written."""
+    rows = 0
+
+    def write(fh) -> None:  # noqa: ANN001
+        nonlocal rows
+        stream = SampleStream(fh)
+        try:
+            stream.finish(produce(stream))
+        except BaseException:
+            stream.abort()
+            raise
+        rows = stream.rows
+
+    atomic_write_with(Path(path), write, overwrite=True)
+    return rows
 
 
 def _flags_column(arrow, path) -> np.ndarray:

@@ -134,7 +134,7 @@ def calibrate(
     ] = None,
 ) -> None:
     """Reduce RUN_DIR's frames to RUN_DIR/samples.parquet (per texel: samples-texels.parquet)."""
-    from calibration.reduce import ReduceOptions, reduce_run
+    from calibration.reduce import ReduceOptions, reduce_to_file
 
     if per_texel is not None and not per_texel > 0:
         raise typer.BadParameter("--per-texel must be a texel side > 0 in mm")
@@ -154,21 +154,20 @@ def calibrate(
         texel_mm=per_texel,
         strict=strict,
     )
-    table = reduce_run(run_dir, options, out=samples_out, progress=True)
-    name = "samples.parquet" if per_texel is None else "samples-texels.parquet"
-    dest = samples_out if samples_out is not None else run_dir / name
-    texels = "" if per_texel is None else f" in {len(set(table.extra['texel'].tolist()))} texels"
-    out.print(f"{printable(dest)}: {len(table)} samples{texels}", markup=False)
-    _print_budget(table)
+    # Written pose by pose and not read back: memory does not grow with the run's length.
+    done = reduce_to_file(run_dir, options, out=samples_out, progress=True)
+    texels = "" if done.texels is None else f" in {done.texels} texels"
+    out.print(f"{printable(done.path)}: {done.rows} samples{texels}", markup=False)
+    _print_budget(done.metadata)
 
 
-def _print_budget(table) -> None:  # noqa: ANN001
+def _print_budget(metadata: dict[str, str]) -> None:
     """The samples' uncertainty budget as a GUM-style table (component, type, size, shared by)."""
     from rich.table import Table
 
     from fitting.budget import budget_words, read_budget
 
-    rows = budget_words(read_budget(table.metadata))
+    rows = budget_words(read_budget(metadata))
     grid = Table(title="Uncertainty budget (type A: from these data; B: from elsewhere)")
     for col in ("component", "type", "size", "shared by"):
         grid.add_column(col)

@@ -1,0 +1,68 @@
+"""The fused HDR merge the reduction runs (calibration.hdr.merge_frames_local, compiled) computes
+the documented numpy merge (`merge_brackets_local`, whose bias and noise tests are
+tests/test_hdr_bias.py) from the raw frames, on frames that exercise every branch: a Bayer mosaic
+and an RGB image, per-pixel darks, a bright patch that saturates the long brackets and one that
+saturates them all, pixels with no valid neighbour, and an on-sample mask.
+
+Tolerance: both compute the same IEEE operations in the same order except the neighbours' sum
+(scipy's running 3-tap sums × 9 − self in numpy, a direct sum of ≤ 8 values in the kernel), a
+few ulps (≤ 1e-15 relative) of the reference flux; the merged flux and variance depend on it
+only through the weights, linearly, so 1e-12 relative is 1000× the rounding. The bracket choice
+(a comparison against the clip) is asserted identical: a flip would need a reference within
+1e-15 of a threshold, which these seeded frames do not have.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration.hdr import merge_brackets_local, merge_frames_local
+
+GAIN_E_PER_DN = 2.0
+WHITE_DN = 4095.0
+EXPOSURES_S = [0.001, 0.004, 0.016]
+READ_E = np.array([3.1, 3.3, 3.9])  # grows with exposure, as a dark's temporal noise does
+
+
+def _frames(shape, rng):
+    """Raw brackets (B, *shape) of a flux field with a bright and a blinding patch, and their
+    per-pixel darks."""
+    h, w = shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w]
+    flux_e_s = 2e4 * (1.0 + 0.5 * np.sin(xx / 7.0) * np.cos(yy / 5.0))
+    flux_e_s[10:20, 10:24] = 5e5  # saturates the 16 ms and 4 ms brackets
+    flux_e_s[30:36, 40:50] = 5e7  # saturates all three
+    if len(shape) == 3:
+        flux_e_s = flux_e_s[..., None] * np.array([0.7, 1.0, 1.3])
+    dark_dn = 64.0 + rng.normal(0.0, 2.0, (len(EXPOSURES_S), *shape))
+    dn = []
+    for i, t in enumerate(EXPOSURES_S):
+        electrons = rng.poisson(flux_e_s * t) + rng.normal(0.0, READ_E[i], shape)
+        dn.append(np.clip(np.round(dark_dn[i] + electrons / GAIN_E_PER_DN), 0, WHITE_DN))
+    return np.array(dn, dtype=np.float32), dark_dn
+
+
+@pytest.mark.parametrize("shape, cfa", [((48, 64), True), ((40, 56, 3), False)])
+def test_fused_merge_is_the_documented_merge(shape, cfa) -> None:
+    rng = np.random.default_rng(7)
+    dn, dark_dn = _frames(shape, rng)
+    h, w = shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w]
+    valid = (yy - h / 2) ** 2 + (xx - w / 2) ** 2 < (0.45 * w) ** 2
+    valid[5, 5] = True  # an isolated valid pixel: no valid neighbour (the own-merge fallback)
+    electrons = [(dn[i].astype(np.float64) - dark_dn[i]) * GAIN_E_PER_DN for i in range(3)]
+    saturated = [dn[i] >= WHITE_DN - 0.5 for i in range(3)]
+    clips = [(WHITE_DN - dark_dn[i]) * GAIN_E_PER_DN for i in range(3)]
+    want = merge_brackets_local(
+        electrons, EXPOSURES_S, saturated, READ_E, clips, valid=valid, cfa=cfa
+    )
+    got = merge_frames_local(
+        dn, dark_dn, GAIN_E_PER_DN, WHITE_DN, EXPOSURES_S, READ_E, valid=valid, cfa=cfa
+    )
+    assert want[2].any() and not want[2].all()  # the blinding patch is all-saturated
+    np.testing.assert_array_equal(got[2], want[2])
+    np.testing.assert_allclose(got[0], want[0], rtol=1e-12, atol=0)
+    finite = np.isfinite(want[1])
+    np.testing.assert_array_equal(np.isfinite(got[1]), finite)
+    np.testing.assert_allclose(got[1][finite], want[1][finite], rtol=1e-12, atol=0)
