@@ -21,11 +21,13 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from acquisition.store import RunStore
-from calibration.decode import FrameError, decode_frame
+from calibration.decode import DecodedFrame, FrameError, decode_frame
 from plumbing.errors import UserError
+from plumbing.prefetch import prefetched
 
 __all__ = [
     "CalibrationFrameError",
@@ -64,25 +66,34 @@ def calibration_take_description(run_dir: str | Path, kind: str) -> dict:
         return {} if info is None else dict(info["description"])
 
 
-def _decode_all(run_dir: Path, entries: list[dict]) -> Iterator[np.ndarray]:
-    """The entries' frames as float64 DN, decoded one at a time as the master that takes them
-    asks (all of one shape). Masters accumulate frame by frame: holding every frame at once and
-    then a stack of them cost 2 × N frames of float64 — 12 GB for the default 32 flats of a
-    24 MP camera (benchmarks/bench_camera_scale.py)."""
-    shape = None
-    for e in entries:
+def _decoded(run_dir: Path, entries: list[dict]) -> Iterator[DecodedFrame]:
+    """The entries' frames, decoded one at a time as the master that takes them asks, the next
+    one while the master works on this one (plumbing.prefetch); all of one shape. Masters
+    accumulate frame by frame: holding every frame at once and then a stack of them cost
+    2 × N frames of float64 — 12 GB for the default 32 flats of a 24 MP camera
+    (benchmarks/bench_camera_scale.py)."""
+
+    def decode(e: dict) -> DecodedFrame:
         try:
-            frame = decode_frame(run_dir / e["path"], e.get("sha256"))
+            return decode_frame(run_dir / e["path"], e.get("sha256"))
         except FrameError as exc:
             raise CalibrationFrameError(f"{e['kind']} frame unusable: {exc}") from None
-        dn = np.asarray(frame.dn, dtype=np.float64)
+
+    shape = None
+    for frame in prefetched(decode, entries):
         if shape is None:
-            shape = dn.shape
-        elif dn.shape != shape:
+            shape = frame.dn.shape
+        elif frame.dn.shape != shape:
             raise CalibrationFrameError(
-                f"calibration frames of different shapes {sorted({shape, dn.shape})}"
+                f"calibration frames of different shapes {sorted({shape, frame.dn.shape})}"
             )
-        yield dn
+        yield frame
+
+
+def _decode_all(run_dir: Path, entries: list[dict]) -> Iterator[np.ndarray]:
+    """The entries' frames' DN (as decoded: float32 or float64), see `_decoded`."""
+    for frame in _decoded(run_dir, entries):
+        yield frame.dn
 
 
 @dataclass(frozen=True)
@@ -105,18 +116,27 @@ def master_dark(frames: Iterable[np.ndarray], exposure_s: float) -> MasterDark:
     deviations per pixel), so memory does not grow with the number of frames."""
     n, mean, m2 = 0, None, None
     for f in frames:
-        x = np.asarray(f, dtype=np.float64)
+        x = np.asarray(f)
         n += 1
         if mean is None:
-            mean, m2 = x.copy(), np.zeros_like(x)
+            mean, m2 = x.astype(np.float64), np.zeros(x.shape)
             continue
-        delta = x - mean
-        mean += delta / n
-        m2 += delta * (x - mean)
+        _welford_update(mean.reshape(-1), m2.reshape(-1), x.reshape(-1), float(n))
     if n < 2:
         raise CalibrationFrameError("a master dark needs at least 2 frames")
     var = float(np.mean(m2 / (n - 1)))  # unbiased per pixel, then averaged
     return MasterDark(float(exposure_s), mean, var, n)
+
+
+@numba.njit(cache=True)
+def _welford_update(mean, m2, x, n):  # noqa: ANN001
+    """One frame into the running mean and sum of squared deviations, in place, in one pass:
+    δ = x − mean; mean += δ/n; m2 += δ·(x − mean) (numpy's whole-array steps, same rounding)."""
+    for k in range(mean.shape[0]):
+        v = np.float64(x[k])
+        delta = v - mean[k]
+        mean[k] += delta / n
+        m2[k] += delta * (v - mean[k])
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ import numpy as np
 from calibration.darks import (
     CalibrationFrameError,
     DarkLibrary,
-    _decode_all,
+    _decoded,
     calibration_frames,
 )
 
@@ -135,7 +135,6 @@ def load_flat(
     intrinsics,
 ) -> FlatField | None:
     """The run's flat field from ``RUN/calibration/flat/`` frames; None if none were recorded."""
-    from calibration.decode import decode_frame
 
     run_dir = Path(run_dir)
     entries = calibration_frames(run_dir, "flat")
@@ -144,11 +143,10 @@ def load_flat(
     exposures = {float(e["exposure_s"]) for e in entries}
     if len(exposures) != 1:
         raise CalibrationFrameError(f"flat frames at several exposures {sorted(exposures)}")
-    frames = _decode_all(run_dir, entries)  # raises a one-line error on a bad frame
-    first_dn = next(frames)  # checked against its SHA-256 before anything else reads it
-    first = decode_frame(run_dir / entries[0]["path"])  # for its layout; verified just above
+    frames = _decoded(run_dir, entries)  # raises a one-line error on a bad frame
+    first = next(frames)  # its layout (channels, mosaic) is every flat's
     return master_flat(
-        itertools.chain([first_dn], frames),
+        itertools.chain([first.dn], (f.dn for f in frames)),
         channels=first.channels,
         cfa_pattern=first.cfa_pattern,
         exposure_s=exposures.pop(),

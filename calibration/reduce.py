@@ -78,6 +78,7 @@ from fitting.directions import vector_to_spherical
 from fitting.samples import Flags, SampleStream, SampleTable, read_samples, write_samples_streamed
 from plumbing.atomic import check_writable_dir
 from plumbing.errors import UserError
+from plumbing.prefetch import prefetched
 from plumbing.progress import Progress
 
 __all__ = ["ReduceOptions", "CalibrationError", "ReducedSamples", "reduce_run", "reduce_to_file"]
@@ -268,10 +269,15 @@ def _reduce_open_run(
     def produce(stream: SampleStream) -> dict[str, str]:
         monitors: list[float] = []  # per pose, for the report's drift plot
         arm_poses: dict[int, dict] = {}  # per capture: the arms' pose (fitting.nuisance)
-        iterator = sorted(by_pose.items())
-        with Progress("calibrating", len(iterator), enabled=progress, transient=True) as bar:
-            for _pose_index, recs in iterator:
-                good, decoded = _decode_pose(recs, run_dir, skipped, options.strict)
+        poses = [recs for _pose_index, recs in sorted(by_pose.items())]
+
+        def decode(recs: list) -> tuple[list, list]:
+            return _decode_pose(recs, run_dir, skipped, options.strict)
+
+        with Progress("calibrating", len(poses), enabled=progress, transient=True) as bar:
+            # The next pose's frames are read and decoded while this one is reduced
+            # (plumbing.prefetch): at most two poses' frames are in memory.
+            for good, decoded in prefetched(decode, poses):
                 if good:
                     level = rig.light.level
                     monitor = _monitor_factor(good, level) if options.light_monitor else 1.0
@@ -284,7 +290,6 @@ def _reduce_open_run(
                         arm_poses[good[0].id] = _arm_pose(cal, good[0])
                     except (PlaneError, CalibrationFrameError) as exc:
                         raise CalibrationError(f"{run_dir}: {exc}") from None
-                del decoded  # the pose's frames go before the next pose's are decoded
                 bar.advance()
         if not stream.rows:
             # One line, no warnings before it: the error names the first frame that failed.

@@ -96,13 +96,16 @@ def _robust_line(
             slope = (d[j] - d[i]) / (t[j] - t[i])
             if abs(slope) * span <= max_tilt_px:
                 proposals.append((d[i], slope, t[i]))
-    best, best_key = None, None
-    for d0, slope, t0 in proposals:
-        inl = np.abs(d - (d0 + slope * (t - t0))) <= tol_px
-        key = (int(inl.sum()), -float(np.mean(d[inl])))
-        if best_key is None or key > best_key:
-            best, best_key = inl, key
-    if best is None or best.sum() < 2:
+    # Every proposal's inliers at once (proposals × segments); the best has the most inliers,
+    # then the innermost mean offset, then comes first (as a scan keeping the first best would).
+    d0, slope, t0 = np.array(proposals).T
+    inliers = np.abs(d[None, :] - (d0[:, None] + slope[:, None] * (t[None, :] - t0[:, None])))
+    inliers = inliers <= tol_px
+    count = inliers.sum(axis=1)
+    mean_d = (inliers * d[None, :]).sum(axis=1) / np.maximum(count, 1)
+    first_best = np.lexsort((np.arange(len(count)), mean_d, -count))[0]
+    best = inliers[first_best]
+    if best.sum() < 2:
         return None
     coef = _weighted_line(t[best], d[best], w[best])
     if abs(coef[0]) * span > max_tilt_px:  # the refit may not tilt beyond the bound either

@@ -4,12 +4,13 @@ tests/test_hdr_bias.py) from the raw frames, on frames that exercise every branc
 and an RGB image, per-pixel darks, a bright patch that saturates the long brackets and one that
 saturates them all, pixels with no valid neighbour, and an on-sample mask.
 
-Tolerance: both compute the same IEEE operations in the same order except the neighbours' sum
-(scipy's running 3-tap sums × 9 − self in numpy, a direct sum of ≤ 8 values in the kernel), a
-few ulps (≤ 1e-15 relative) of the reference flux; the merged flux and variance depend on it
-only through the weights, linearly, so 1e-12 relative is 1000× the rounding. The bracket choice
-(a comparison against the clip) is asserted identical: a flip would need a reference within
-1e-15 of a threshold, which these seeded frames do not have.
+Tolerance: the kernel computes the same quantities with a different rounding order — the
+neighbours' sum (scipy's running 3-tap sums × 9 − self in numpy, a direct sum of ≤ 8 values in
+the kernel) and the weighted mean as one fraction (Σ tᵢsᵢPᵢ / Σ tᵢ²Pᵢ with Pᵢ the other
+brackets' denominators, instead of 2B + 1 divisions) — each a few ulps (≤ 1e-15 relative) of
+the flux and variance, so 1e-12 relative is 1000× the rounding. The bracket choice (a
+comparison against the clip) is asserted identical: a flip would need a reference within 1e-15
+of a threshold, which these seeded frames do not have.
 """
 
 from __future__ import annotations
