@@ -22,7 +22,14 @@ import numpy as np
 
 from acquisition.kinematics import Kinematics, look_at_rotation
 
-__all__ = ["Intrinsics", "RigGeometry", "PixelGeometry", "pixel_geometry", "project_points"]
+__all__ = [
+    "Intrinsics",
+    "RigGeometry",
+    "PixelGeometry",
+    "PixelGrid",
+    "pixel_geometry",
+    "project_points",
+]
 
 
 @dataclass(frozen=True)
@@ -108,33 +115,39 @@ class PixelGeometry:
     on_sample: np.ndarray  # bool: the ray hits the sample (inside its edge margin)
 
 
+@dataclass(frozen=True)
+class PixelGrid:
+    """Which pixel centres a geometry is computed for: u = x0 + offset + step·k within the
+    `window` (x0, y0, x1, y1) of the frame (x0, y0 multiples of `step`; None: the whole frame),
+    the same for v. A 2×2 Bayer superpixel has step 2 and offset 0.5: the ray goes through
+    the centre of its four photosites. A window gives the whole frame's values at its pixels."""
+
+    step: int = 1
+    offset: float = 0.0
+    window: tuple[int, int, int, int] | None = None
+
+
 def pixel_geometry(
     intr: Intrinsics,
     camera_pos_m: np.ndarray,
     light_pos_m: np.ndarray,
     sample_size_m: float,
     *,
-    step: int = 1,
-    offset: float = 0.0,
+    grid: PixelGrid = PixelGrid(),
     margin_m: float = 0.0,
     rotation: np.ndarray | None = None,
-    window: tuple[int, int, int, int] | None = None,
     mask_only: bool = False,
 ) -> PixelGeometry:
-    """Geometry for pixel centres u = offset + step·k (k = 0..W/step−1), same for v.
+    """Geometry for the pixel centres of `grid` (default: every pixel of the frame).
 
-    `window` = (x0, y0, x1, y1): only the pixels of that rectangle of the frame (x0, y0
-    multiples of `step`), u = x0 + offset + step·k (k = 0..(x1−x0)/step−1): the same values
-    as the whole frame's at those pixels. `mask_only`: only `on_sample` is filled (the other
-    arrays are 1 × 1 placeholders).
-
-    With a 2×2 Bayer superpixel, step = 2 and offset = 0.5 put the ray through the centre of
-    the four photosites. `rotation`: camera → sample frame (columns: camera axes); default the
-    camera looking at the origin (`look_at_rotation`), see `RigGeometry.positions`.
+    `rotation`: camera → sample frame (columns: camera axes); default the camera looking at
+    the origin (`look_at_rotation`), see `RigGeometry.positions`. `mask_only`: only
+    `on_sample` is filled (the other arrays are 1 × 1 placeholders).
     """
     cam = np.asarray(camera_pos_m, dtype=np.float64)
     light = np.asarray(light_pos_m, dtype=np.float64)
-    x0, y0, x1, y1 = (0, 0, intr.width, intr.height) if window is None else window
+    step, offset = grid.step, grid.offset
+    x0, y0, x1, y1 = (0, 0, intr.width, intr.height) if grid.window is None else grid.window
     us = x0 + offset + step * np.arange((x1 - x0) // step)
     vs = y0 + offset + step * np.arange((y1 - y0) // step)
     if intr.distorted:
@@ -157,7 +170,7 @@ def pixel_geometry(
     return geo
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _ray_geometry(x, y, rot, cam, light, half, mask_only, out):  # noqa: ANN001
     """Per pixel: the ray d = R·(x, y, 1) from the camera cut with z = 0 at p = C + t·d
     (t = −C_z/d_z, none when d_z ≥ 0), ω_i = (L − p)/|L − p|, ω_o = (C − p)/|C − p|, and on the
@@ -166,7 +179,7 @@ def _ray_geometry(x, y, rot, cam, light, half, mask_only, out):  # noqa: ANN001
     `mask_only`)."""
     point, wi, wo, dist, on = out
     h, w = x.shape
-    for r in range(h):
+    for r in numba.prange(h):  # rows in parallel: each pixel's arithmetic is its own
         for c in range(w):
             xn, yn = x[r, c], y[r, c]
             d0 = xn * rot[0, 0] + yn * rot[0, 1] + rot[0, 2]

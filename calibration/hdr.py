@@ -21,10 +21,18 @@ level, where the long exposure survives only when it fluctuated low.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numba
 import numpy as np
 
-__all__ = ["merge_brackets", "merge_brackets_local", "merge_frames_local", "local_mean"]
+__all__ = [
+    "merge_brackets",
+    "merge_brackets_local",
+    "merge_frames_local",
+    "RawBrackets",
+    "local_mean",
+]
 
 
 def merge_brackets(
@@ -159,13 +167,26 @@ def local_mean(flux: np.ndarray, valid: np.ndarray, *, cfa: bool) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True)
+class RawBrackets:
+    """One pose's brackets as the camera recorded them, for `merge_frames_local`.
+
+    ``dn``: raw values (B, H, W) or (B, H, W, C); ``offset_dn``: what each reads at zero
+    signal (the master dark of its exposure, or the black level broadcast), same shape;
+    ``exposures_s`` (B,); ``read_noise_e``: signal-independent noise σ per bracket (e⁻);
+    ``gain_e_per_dn``; ``white_dn``: the clip level (a bracket is saturated at DN ≥ white − ½
+    and clips at (white − offset)·gain electrons)."""
+
+    dn: np.ndarray
+    offset_dn: np.ndarray
+    exposures_s: list[float]
+    read_noise_e: np.ndarray
+    gain_e_per_dn: float
+    white_dn: float
+
+
 def merge_frames_local(
-    dn: np.ndarray,
-    offset_dn: np.ndarray,
-    gain_e_per_dn: float,
-    white_dn: float,
-    exposures_s: list[float],
-    read_noise_e: np.ndarray,
+    brackets: RawBrackets,
     *,
     valid: np.ndarray | None = None,
     cfa: bool = False,
@@ -174,12 +195,13 @@ def merge_frames_local(
     """`merge_brackets_local` from the raw frames in one compiled pass per step (the same
     maths, without its whole-image float64 temporaries: about 20 of them per bracket).
 
-    ``dn``: the brackets' raw values (B, H, W) or (B, H, W, C); ``offset_dn``: the value each
-    one reads at zero signal (the master dark of its exposure, or the black level broadcast),
-    same shape. Electrons are (DN − offset)·gain, a bracket is saturated at DN ≥ white − ½
-    and clips at (white − offset)·gain electrons, as calibration.planes.merge_pose forms them
-    for `merge_brackets_local`. Returns (flux e/s, variance (e/s)², all_saturated mask).
+    Electrons are (DN − offset)·gain, as calibration.planes.merge_pose forms them for
+    `merge_brackets_local`; ``valid``, ``cfa`` and ``margin_sigma`` are its arguments.
+    Returns (flux e/s, variance (e/s)², all_saturated mask).
     """
+    dn, offset_dn = brackets.dn, brackets.offset_dn
+    exposures_s, read_noise_e = brackets.exposures_s, brackets.read_noise_e
+    gain_e_per_dn, white_dn = brackets.gain_e_per_dn, brackets.white_dn
     b = dn.shape[0]
     if offset_dn.shape != dn.shape:
         raise ValueError(f"offset_dn shape {offset_dn.shape} ≠ dn shape {dn.shape}")

@@ -23,9 +23,15 @@ import numpy as np
 
 from calibration.darks import DarkLibrary
 from calibration.flatfield import FlatField
-from calibration.geometry import Intrinsics, PixelGeometry, RigGeometry, pixel_geometry
+from calibration.geometry import (
+    Intrinsics,
+    PixelGeometry,
+    PixelGrid,
+    RigGeometry,
+    pixel_geometry,
+)
 from calibration.geometry import project_points as _project
-from calibration.hdr import merge_frames_local
+from calibration.hdr import RawBrackets, merge_frames_local
 from calibration.radiometry import CameraRadiometry
 from calibration.segmentation import segment_sample
 from plumbing.errors import UserError
@@ -259,13 +265,16 @@ def merge_pose(cal: RunCalibration, decoded, exposures, on_sample=None, window=N
     # merge_frames_local computes without whole-frame temporaries: own-value weights and
     # saturation tests bias the flux and any σ-weighted fit by O(1/N_electrons)).
     # Off-sample neighbours (holder, background) do not enter the local estimate.
-    flux, var, all_sat = merge_frames_local(
+    brackets = RawBrackets(
         np.stack(dn),
         np.stack(offsets),
+        list(exposures),
+        np.asarray(noise_sd),
         k,
         radiometry.white_level_dn,
-        exposures,
-        np.asarray(noise_sd),
+    )
+    flux, var, all_sat = merge_frames_local(
+        brackets,
         valid=on_sample,
         cfa=decoded[0].channels == "CFA",
     )
@@ -308,11 +317,9 @@ def pose_planes(
             cam_pos,
             light_pos,
             size_m,
-            step=step,
-            offset=offset,
+            grid=PixelGrid(step, offset, window.bounds),
             margin_m=max(opts.margin_m, _pointing_margin_m(cal, cam_pos)),
             rotation=rot,
-            window=window.bounds,
             mask_only=mask_only,
         )
 

@@ -62,7 +62,9 @@ def _ccw(corners: np.ndarray) -> np.ndarray:
 def polygon_mask(shape: tuple[int, int], corners_px: np.ndarray) -> np.ndarray:
     """Pixels (H, W) whose centre (integer u, v) lies inside the convex polygon ``corners_px``."""
     pts = _ccw(np.asarray(corners_px, dtype=np.float64))
-    vv, uu = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    # A column of v and a row of u, broadcast: no (H, W) coordinate arrays to build.
+    vv = np.arange(shape[0], dtype=np.float64)[:, None]
+    uu = np.arange(shape[1], dtype=np.float64)[None, :]
     inside = np.ones(shape, bool)
     n = len(pts)
     for k in range(n):

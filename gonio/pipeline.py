@@ -406,6 +406,7 @@ def sample_levels_decoder(camera: dict[str, Any], rig: RigConfig, sample_size_m:
             kin.camera_position_m(axes_measured),
             kin.light_position_m(axes_measured),
             sample_size_m,
+            mask_only=True,
         ).on_sample
         return lv[on].ravel()
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.hdr import merge_brackets_local, merge_frames_local
+from calibration.hdr import RawBrackets, merge_brackets_local, merge_frames_local
 
 GAIN_E_PER_DN = 2.0
 WHITE_DN = 4095.0
@@ -58,9 +58,8 @@ def test_fused_merge_is_the_documented_merge(shape, cfa) -> None:
     want = merge_brackets_local(
         electrons, EXPOSURES_S, saturated, READ_E, clips, valid=valid, cfa=cfa
     )
-    got = merge_frames_local(
-        dn, dark_dn, GAIN_E_PER_DN, WHITE_DN, EXPOSURES_S, READ_E, valid=valid, cfa=cfa
-    )
+    brackets = RawBrackets(dn, dark_dn, EXPOSURES_S, READ_E, GAIN_E_PER_DN, WHITE_DN)
+    got = merge_frames_local(brackets, valid=valid, cfa=cfa)
     assert want[2].any() and not want[2].all()  # the blinding patch is all-saturated
     np.testing.assert_array_equal(got[2], want[2])
     np.testing.assert_allclose(got[0], want[0], rtol=1e-12, atol=0)

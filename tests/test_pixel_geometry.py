@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from acquisition.kinematics import look_at_rotation
-from calibration.geometry import Intrinsics, pixel_geometry, project_points
+from calibration.geometry import Intrinsics, PixelGrid, pixel_geometry, project_points
 
 SIZE_M = 0.05
 CAM_M = np.array([0.21, -0.12, 0.43])  # θ_o ≈ 31°: an oblique view, a trapezoidal footprint
@@ -34,7 +34,8 @@ def _intrinsics(distorted: bool) -> Intrinsics:
 def test_on_sample_pixels_project_back_onto_themselves(distorted, step, offset) -> None:
     intr = _intrinsics(distorted)
     rot = look_at_rotation(CAM_M)
-    geo = pixel_geometry(intr, CAM_M, LIGHT_M, SIZE_M, step=step, offset=offset, rotation=rot)
+    grid = PixelGrid(step, offset)
+    geo = pixel_geometry(intr, CAM_M, LIGHT_M, SIZE_M, grid=grid, rotation=rot)
     on = geo.on_sample
     assert 1000 < on.sum() < on.size  # the footprint is in view and does not fill the frame
     vs, us = np.nonzero(on)
@@ -75,15 +76,14 @@ def test_pixels_off_the_sample_are_off(distorted) -> None:
 def test_a_window_gives_the_whole_frames_values() -> None:
     intr = _intrinsics(False)
     rot = look_at_rotation(CAM_M)
-    whole = pixel_geometry(intr, CAM_M, LIGHT_M, SIZE_M, step=2, offset=0.5, rotation=rot)
+    whole = pixel_geometry(intr, CAM_M, LIGHT_M, SIZE_M, grid=PixelGrid(2, 0.5), rotation=rot)
     x0, y0, x1, y1 = 96, 64, 400, 352
-    part = pixel_geometry(
-        intr, CAM_M, LIGHT_M, SIZE_M, step=2, offset=0.5, rotation=rot, window=(x0, y0, x1, y1)
-    )
+    grid = PixelGrid(2, 0.5, (x0, y0, x1, y1))
+    part = pixel_geometry(intr, CAM_M, LIGHT_M, SIZE_M, grid=grid, rotation=rot)
     sl = (slice(y0 // 2, y1 // 2), slice(x0 // 2, x1 // 2))
     for name in ("point_m", "wi", "wo", "light_distance_m", "on_sample"):
         np.testing.assert_array_equal(getattr(part, name), getattr(whole, name)[sl])
     mask = pixel_geometry(
-        intr, CAM_M, LIGHT_M, SIZE_M, step=2, offset=0.5, rotation=rot, mask_only=True
+        intr, CAM_M, LIGHT_M, SIZE_M, grid=PixelGrid(2, 0.5), rotation=rot, mask_only=True
     )
     np.testing.assert_array_equal(mask.on_sample, whole.on_sample)
