@@ -27,6 +27,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from calibration.darks import (
@@ -66,6 +67,17 @@ class FlatField:
         return out, var / self.gain**2 + out**2 * self.rel_var
 
 
+@numba.njit(cache=True)
+def _add_unsaturated(total, x, clip_dn):  # noqa: ANN001
+    """total += x (in float64) in one pass; True if any value of x is at or above `clip_dn`."""
+    saturated = False
+    for k in range(total.shape[0]):
+        v = np.float64(x[k])
+        saturated |= v >= clip_dn
+        total[k] += v
+    return saturated
+
+
 def _centre_value(e: np.ndarray, rho: np.ndarray) -> float:
     """a₀ of the least-squares cubic in ρ = r²/f² (the response on the optical axis)."""
     a = np.stack([np.ones_like(rho), rho, rho**2, rho**3], axis=-1)
@@ -92,15 +104,13 @@ def master_flat(
     # calibration.darks._decode_all).
     total, n = None, 0
     for f in frames:
-        x = np.asarray(f, dtype=np.float64)
-        if np.any(x >= white_level_dn - 0.5):
+        x = np.asarray(f)
+        if total is None:
+            total = np.zeros(x.shape)
+        if _add_unsaturated(total.reshape(-1), x.reshape(-1), white_level_dn - 0.5):
             raise CalibrationFrameError(
                 "flat frames are saturated: lower the exposure or the source level"
             )
-        if total is None:
-            total = x.copy()
-        else:
-            total += x
         n += 1
     if total is None:
         raise CalibrationFrameError("no flat frames")

@@ -104,24 +104,39 @@ class Plane:
     origin: tuple[int, int] = (0, 0)
 
 
-def block_mean(a: np.ndarray, b: int) -> np.ndarray:
-    """Means over b × b blocks of the first two axes (a trailing partial block is dropped).
-    Rows of a block are summed first, then columns: two contiguous sums, 2–3× faster than one
-    mean over both axes of the reshaped array."""
+def _block_views(a: np.ndarray, b: int) -> list[np.ndarray]:
+    """The b² strided views of `a` (first two axes) whose element (r, c) is element (i, j) of
+    block (r, c), for i, j < b; a trailing partial block is dropped. Reducing them one into
+    another touches each element once, in contiguous runs (a reduction over the axes of a
+    reshaped array was 3–10× slower)."""
     h, w = a.shape[0] // b * b, a.shape[1] // b * b
-    a = a[:h, :w]
-    rows = a.reshape(h // b, b, w, *a.shape[2:]).sum(axis=1)
-    return rows.reshape(h // b, w // b, b, *a.shape[2:]).sum(axis=2) / (b * b)
+    return [a[i:h:b, j:w:b] for i in range(b) for j in range(b)]
+
+
+def block_mean(a: np.ndarray, b: int) -> np.ndarray:
+    """Means over b × b blocks of the first two axes (a trailing partial block is dropped)."""
+    views = _block_views(a, b)
+    total = views[0].astype(np.float64)  # a copy: summed into below
+    for v in views[1:]:
+        total += v
+    total /= b * b
+    return total
 
 
 def block_all(a: np.ndarray, b: int) -> np.ndarray:
-    h, w = a.shape[0] // b * b, a.shape[1] // b * b
-    return a[:h, :w].reshape(h // b, b, w // b, b).all(axis=(1, 3))
+    views = _block_views(a, b)
+    out = views[0].copy()
+    for v in views[1:]:
+        out &= v
+    return out
 
 
 def block_any(a: np.ndarray, b: int) -> np.ndarray:
-    h, w = a.shape[0] // b * b, a.shape[1] // b * b
-    return a[:h, :w].reshape(h // b, b, w // b, b).any(axis=(1, 3))
+    views = _block_views(a, b)
+    out = views[0].copy()
+    for v in views[1:]:
+        out |= v
+    return out
 
 
 def _channels_of(flux, var, sat, channels: str, cfa_pattern: str | None):
