@@ -29,7 +29,12 @@ holder or background (a mis-estimated pose, an occluding rim) are kept but flagg
 Everything comes from the run: run.toml's camera, sample, rig and geometric-calibration records
 (what the rig file described, acquisition.description) and the calibration frames the run
 recorded (`RUN/calibration/`, calibration.darks / flatfield / reference); never from a scene.
-The per-pose work (merge, flat, colour planes, geometry, segmentation) is calibration.planes.
+The per-pose work (merge, flat, colour planes, geometry, segmentation) is calibration.planes,
+done only in the window around the sample's image (calibration.planes.footprint_window), while
+the next pose's frames are decoded in a background thread (plumbing.prefetch). Each pose's
+samples go to the file as they are made (`reduce_to_file`, fitting.samples.SampleStream), so the
+memory of a run does not grow with its number of poses; `reduce_run` reads the file back for a
+caller that fits the table at once.
 Bad input: a frame listed in the manifest but missing → CalibrationError naming the first; a
 frame that exists but cannot be decoded (truncated RAW, EXR without colour channels) → that
 capture is skipped with a printed warning and counted in the Parquet metadata
