@@ -2,7 +2,8 @@
 
 What is measured, per configuration (camera size × number of poses, 3 brackets per pose):
 
-- the whole `calibration.reduce.reduce_run` with its default `ReduceOptions` (master darks per
+- the whole `calibration.reduce.reduce_to_file` (what `gonio calibrate` runs: the samples
+  streamed to the file pose by pose) with its default `ReduceOptions` (master darks per
   exposure, a flat field, reference-target radiometry, segmentation of the sample, per-pixel
   geometry, 4 × 4 bins), wall time and throughput in MP/s of the frames it decodes;
 - the decode floor: every frame the reduce reads (pose brackets, darks, flats, reference
@@ -43,12 +44,12 @@ new manifest rows (new pose indices, their own frame names hard-linked to the fi
 files, the same SHA-256, axes and exposures). The reduce does exactly the work of 500 rendered
 poses — every frame is hashed, decoded, merged and reduced — but the repetitions cost no disk
 (rendering 1500 more 5 MP frames would take ~15 min and 15 GB; 500 poses at 24 MP, 72 GB).
-Only 2448 × 2048 is run at 500 poses: the reduce of 500 poses at 24 MP would take hours here.
+Only 2448 × 2048 is run at 500 poses: 500 poses at 24 MP would need 72 GB of frames.
 
 Disk: --cache needs ≈ 16 GB for the default configurations (2.5 GB of it the samples files).
 
-Run (slow: ≈ 75 min of reduces, most of it the 24 MP run and the 500 poses, plus ≈ 30 min to
-render the runs the first time; `make bench` skips it unless named:
+Run (slow: ≈ 10 min of reduces and decode floors, most of it the 500 poses and the 24 MP run,
+plus ≈ 30 min to render the runs the first time; `make bench` skips it unless named:
 `make bench BENCH=bench_camera_scale`):
     .venv/bin/python benchmarks/bench_camera_scale.py [--cache /tmp/gonio-bench-camera-scale]
         [--sizes 2448x2048,6000x4000] [--poses 50] [--large-poses 500] [--fit]
@@ -402,7 +403,7 @@ def bench_one(cache: Path, cam: Camera, poses: int, scene: Path) -> dict:
 
 def _report(rows: list[dict]) -> None:
     print(
-        "\nreduce_run, default ReduceOptions (darks, flat, reference scale, segmentation, 4×4 "
+        "\nreduce_to_file, default ReduceOptions (darks, flat, reference scale, segmentation, 4×4 "
         "bins), 3 brackets per pose, DNG through rawpy.\nMP = megapixels of every frame the "
         "reduce reads (pose brackets + darks, flats, reference); 'floor' = decode_frame of those "
         "frames alone; CPU s in brackets."
