@@ -21,6 +21,7 @@ import numba
 import numpy as np
 
 from acquisition.kinematics import Kinematics, look_at_rotation
+from fitting.kernels import dispatch
 
 __all__ = [
     "Intrinsics",
@@ -166,40 +167,55 @@ def pixel_geometry(
     )  # fmt: skip
     half = sample_size_m / 2.0 - margin_m
     arrays = (geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
-    _ray_geometry(x, y, rot, cam, light, half, mask_only, arrays)
+    rays = (x, y, rot, cam, light, half, mask_only)
+    # Threads for large frames when they pay (the fitting kernels' policy, `gonio --threads`).
+    dispatch("pixel_geometry", _rays_par, _rays_ser, h * w, rays, arrays)
     return geo
 
 
-@numba.njit(cache=True, parallel=True)
-def _ray_geometry(x, y, rot, cam, light, half, mask_only, out):  # noqa: ANN001
-    """Per pixel: the ray d = R·(x, y, 1) from the camera cut with z = 0 at p = C + t·d
-    (t = −C_z/d_z, none when d_z ≥ 0), ω_i = (L − p)/|L − p|, ω_o = (C − p)/|C − p|, and on the
-    sample when |p_x|, |p_y| < `half` and both directions are above the surface. Written into
-    `out` = (point, ω_i, ω_o, distance to the light, on-sample mask) (only the mask with
-    `mask_only`)."""
+@numba.njit(cache=True)
+def _ray_row(r, rays, out):  # noqa: ANN001
+    """Row r of the pixels: the ray d = R·(x, y, 1) from the camera cut with z = 0 at
+    p = C + t·d (t = −C_z/d_z, none when d_z ≥ 0), ω_i = (L − p)/|L − p|, ω_o = (C − p)/|C − p|,
+    and on the sample when |p_x|, |p_y| < `half` and both directions are above the surface.
+    `rays` = (x, y, R, C, L, half, mask_only); `out` = (point, ω_i, ω_o, distance to the light,
+    on-sample mask), only the mask written with `mask_only`."""
+    x, y, rot, cam, light, half, mask_only = rays
     point, wi, wo, dist, on = out
-    h, w = x.shape
-    for r in numba.prange(h):  # rows in parallel: each pixel's arithmetic is its own
-        for c in range(w):
-            xn, yn = x[r, c], y[r, c]
-            d0 = xn * rot[0, 0] + yn * rot[0, 1] + rot[0, 2]
-            d1 = xn * rot[1, 0] + yn * rot[1, 1] + rot[1, 2]
-            d2 = xn * rot[2, 0] + yn * rot[2, 1] + rot[2, 2]
-            t = -cam[2] / d2 if d2 < 0 else np.nan
-            p0 = cam[0] + t * d0
-            p1 = cam[1] + t * d1
-            l0, l1, l2 = light[0] - p0, light[1] - p1, light[2]
-            rl = np.sqrt(l0 * l0 + l1 * l1 + l2 * l2)
-            v0, v1, v2 = cam[0] - p0, cam[1] - p1, cam[2]
-            rv = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-            wiz, woz = l2 / rl, v2 / rv
-            on[r, c] = np.isfinite(t) and abs(p0) < half and abs(p1) < half and wiz > 0 and woz > 0
-            if mask_only:
-                continue
-            point[r, c, 0], point[r, c, 1], point[r, c, 2] = p0, p1, 0.0
-            wi[r, c, 0], wi[r, c, 1], wi[r, c, 2] = l0 / rl, l1 / rl, wiz
-            wo[r, c, 0], wo[r, c, 1], wo[r, c, 2] = v0 / rv, v1 / rv, woz
-            dist[r, c] = rl
+    w = x.shape[1]
+    for c in range(w):
+        xn, yn = x[r, c], y[r, c]
+        d0 = xn * rot[0, 0] + yn * rot[0, 1] + rot[0, 2]
+        d1 = xn * rot[1, 0] + yn * rot[1, 1] + rot[1, 2]
+        d2 = xn * rot[2, 0] + yn * rot[2, 1] + rot[2, 2]
+        t = -cam[2] / d2 if d2 < 0 else np.nan
+        p0 = cam[0] + t * d0
+        p1 = cam[1] + t * d1
+        l0, l1, l2 = light[0] - p0, light[1] - p1, light[2]
+        rl = np.sqrt(l0 * l0 + l1 * l1 + l2 * l2)
+        v0, v1, v2 = cam[0] - p0, cam[1] - p1, cam[2]
+        rv = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        wiz, woz = l2 / rl, v2 / rv
+        on[r, c] = np.isfinite(t) and abs(p0) < half and abs(p1) < half and wiz > 0 and woz > 0
+        if mask_only:
+            continue
+        point[r, c, 0], point[r, c, 1], point[r, c, 2] = p0, p1, 0.0
+        wi[r, c, 0], wi[r, c, 1], wi[r, c, 2] = l0 / rl, l1 / rl, wiz
+        wo[r, c, 0], wo[r, c, 1], wo[r, c, 2] = v0 / rv, v1 / rv, woz
+        dist[r, c] = rl
+
+
+@numba.njit(cache=True, parallel=True)
+def _rays_par(rays, out):  # noqa: ANN001
+    """`_ray_row` for every row, rows in parallel (each pixel's arithmetic is its own)."""
+    for r in numba.prange(rays[0].shape[0]):
+        _ray_row(r, rays, out)
+
+
+@numba.njit(cache=True)
+def _rays_ser(rays, out):  # noqa: ANN001
+    for r in range(rays[0].shape[0]):
+        _ray_row(r, rays, out)
 
 
 def project_points(

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from fitting.kernels import dispatch
+
 __all__ = [
     "merge_brackets",
     "merge_brackets_local",
@@ -219,7 +221,7 @@ def merge_frames_local(
     var = np.empty((h, w * nc))
     all_sat = np.empty((h, w * nc), bool)
     step = 2 if cfa else 1  # a mosaic's same-colour neighbours are 2 photosites away
-    _merge_local_kernel(
+    frames = (
         np.ascontiguousarray(dn).reshape(b, h, w * nc),
         np.ascontiguousarray(offset_dn, dtype=np.float64).reshape(b, h, w * nc),
         float(gain_e_per_dn),
@@ -227,10 +229,12 @@ def merge_frames_local(
         t,
         read_e,
         np.ascontiguousarray(ok_valid).reshape(h, w * nc),
-        (step, step * nc),
+        step,
+        step * nc,
         float(margin_sigma),
-        (flux, var, all_sat),
     )
+    # Threads for large frames when they pay (the fitting kernels' policy, `gonio --threads`).
+    dispatch("hdr_merge", _merge_par, _merge_ser, h * w * nc, frames, (flux, var, all_sat))
     return flux.reshape(shape), var.reshape(shape), all_sat.reshape(shape)
 
 
@@ -314,79 +318,113 @@ def _row_scratch(nb, n):  # noqa: ANN001, ANN202
     return (np.empty((nb, n)), np.empty(n), np.empty(n), np.empty(n), np.empty(n))
 
 
-@numba.njit(cache=True, parallel=True)
-def _merge_local_kernel(dn, off, gain, white, t, read_e, valid, strides, margin, out):  # noqa: ANN001
-    """Both steps of merge_frames_local on rows of values (B, H, W·C): (1) every value's
-    own-value merge; (2) per value, the mean of its usable neighbours' (valid and not all
-    saturated; same colour: `strides` = (rows, values) apart, 2 and 2·C in a mosaic), the
-    brackets near the clip dropped by it, and the merge weighted by it — or, without a usable
-    neighbour, by its own merge of the kept brackets (`merge_brackets_local`'s steps 2–4).
-    Rows run in parallel; every value's arithmetic is its own, so the result does not depend
-    on the number of threads."""
-    flux, var, all_sat = out
-    nb, h, n = dn.shape
-    sy, sx = strides
+@numba.njit(cache=True)
+def _first_row(y, frames, state):  # noqa: ANN001
+    """Step 1 for row y: every value's own-value merge, and whether it may serve as a
+    neighbour (valid and not all saturated), into the padded `state` arrays."""
+    dn, off, gain, white, t, read_e, valid, sy, sx, _margin = frames
+    first, first_usable, usable = state
+    nb, n = dn.shape[0], dn.shape[2]
     var_read = np.maximum(read_e**2, 1e-12)
     shortest = np.argmin(t)
-    first = np.empty((h, n))
-    # The first merge where usable and 0 elsewhere, and the usable mask, padded by one
-    # neighbour step on every side so that the neighbour sums need no bounds tests.
-    first_usable = np.zeros((h + 2 * sy, n + 2 * sx))
-    usable = np.zeros((h + 2 * sy, n + 2 * sx))
-    for y in numba.prange(h):
-        s, ok = np.empty((nb, n)), np.empty((nb, n))
-        phi, sat = np.empty(n), np.empty(n)
-        scratch, tmp = _row_scratch(nb, n), (np.empty(n), np.empty(n))
-        _row_electrons(dn, off, gain, white, y, s, ok)
+    s, ok = np.empty((nb, n)), np.empty((nb, n))
+    phi, sat = np.empty(n), np.empty(n)
+    scratch, tmp = _row_scratch(nb, n), (np.empty(n), np.empty(n))
+    _row_electrons(dn, off, gain, white, y, s, ok)
+    _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp)
+    fu, us, v = first_usable[y + sy], usable[y + sy], valid[y]
+    for x in range(n):
+        first[y, x] = phi[x]
+        u = 1.0 if v[x] and sat[x] == 0.0 else 0.0
+        us[x + sx] = u
+        fu[x + sx] = phi[x] if u != 0.0 else 0.0
+
+
+@numba.njit(cache=True)
+def _final_row(y, frames, state, out):  # noqa: ANN001
+    """Step 2 for row y: the neighbours' mean, the brackets near the clip dropped by it, and
+    the merge weighted by it (or by the value's own merge where it has no usable neighbour)."""
+    dn, off, gain, white, t, read_e, _valid, sy, sx, margin = frames
+    first, first_usable, usable = state
+    flux, var, all_sat = out
+    nb, n = dn.shape[0], dn.shape[2]
+    var_read = np.maximum(read_e**2, 1e-12)
+    shortest = np.argmin(t)
+    s, ok = np.empty((nb, n)), np.empty((nb, n))
+    tot, cnt, ref = np.empty(n), np.empty(n), np.empty(n)
+    phi, sat = np.empty(n), np.empty(n)
+    scratch, tmp = _row_scratch(nb, n), (np.empty(n), np.empty(n))
+    _row_electrons(dn, off, gain, white, y, s, ok)
+    for x in range(n):
+        tot[x] = 0.0
+        cnt[x] = 0.0
+    for dy in (-sy, 0, sy):
+        fu, us = first_usable[y + sy + dy], usable[y + sy + dy]
+        for dx in (-sx, 0, sx):
+            if dy == 0 and dx == 0:
+                continue
+            for x in range(n):
+                tot[x] += fu[x + sx + dx]
+                cnt[x] += us[x + sx + dx]
+    alone = False
+    for x in range(n):
+        alone |= cnt[x] == 0.0
+        tot[x] = tot[x] / cnt[x] if cnt[x] > 0 else np.nan  # the neighbours' mean
+        ref[x] = max(tot[x] if cnt[x] > 0 else first[y, x], 0.0)
+    for i in range(nb):
+        oki, offi = ok[i], off[i, y]
+        for x in range(n):
+            expected = ref[x] * t[i]
+            near = expected + margin * np.sqrt(expected + read_e[i] ** 2)
+            oki[x] = oki[x] if near < (white - offi[x]) * gain else 0.0
+    if alone:  # weights from the value's own merge of the kept brackets where no neighbour
         _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp)
-        fu, us, v = first_usable[y + sy], usable[y + sy], valid[y]
         for x in range(n):
-            first[y, x] = phi[x]
-            u = 1.0 if v[x] and sat[x] == 0.0 else 0.0
-            us[x + sx] = u
-            fu[x + sx] = phi[x] if u != 0.0 else 0.0
-    for y in numba.prange(h):
-        s, ok = np.empty((nb, n)), np.empty((nb, n))
-        tot, cnt, ref = np.empty(n), np.empty(n), np.empty(n)
-        phi, sat = np.empty(n), np.empty(n)
-        scratch, tmp = _row_scratch(nb, n), (np.empty(n), np.empty(n))
-        _row_electrons(dn, off, gain, white, y, s, ok)
+            ref[x] = tot[x] if cnt[x] > 0 else phi[x]
+    else:
         for x in range(n):
-            tot[x] = 0.0
-            cnt[x] = 0.0
-        for dy in (-sy, 0, sy):
-            fu, us = first_usable[y + sy + dy], usable[y + sy + dy]
-            for dx in (-sx, 0, sx):
-                if dy == 0 and dx == 0:
-                    continue
-                for x in range(n):
-                    tot[x] += fu[x + sx + dx]
-                    cnt[x] += us[x + sx + dx]
-        alone = False
-        for x in range(n):
-            alone |= cnt[x] == 0.0
-            tot[x] = tot[x] / cnt[x] if cnt[x] > 0 else np.nan  # the neighbours' mean
-            ref[x] = max(tot[x] if cnt[x] > 0 else first[y, x], 0.0)
+            ref[x] = tot[x]
+    est, v = tmp
+    _row_weighted(s, ok, t, var_read, ref, scratch, est, v)
+    for x in range(n):
+        kept = 0.0
         for i in range(nb):
-            oki, offi = ok[i], off[i, y]
-            for x in range(n):
-                expected = ref[x] * t[i]
-                near = expected + margin * np.sqrt(expected + read_e[i] ** 2)
-                oki[x] = oki[x] if near < (white - offi[x]) * gain else 0.0
-        if alone:  # weights from the value's own merge of the kept brackets where no neighbour
-            _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp)
-            for x in range(n):
-                ref[x] = tot[x] if cnt[x] > 0 else phi[x]
-        else:
-            for x in range(n):
-                ref[x] = tot[x]
-        est, v = tmp
-        _row_weighted(s, ok, t, var_read, ref, scratch, est, v)
-        for x in range(n):
-            kept = 0.0
-            for i in range(nb):
-                kept += ok[i, x]
-            none = kept == 0.0
-            flux[y, x] = s[shortest, x] / t[shortest] if none else est[x]
-            var[y, x] = np.inf if none else v[x]
-            all_sat[y, x] = none
+            kept += ok[i, x]
+        none = kept == 0.0
+        flux[y, x] = s[shortest, x] / t[shortest] if none else est[x]
+        var[y, x] = np.inf if none else v[x]
+        all_sat[y, x] = none
+
+
+@numba.njit(cache=True)
+def _merge_state(frames):  # noqa: ANN001, ANN202
+    """The first merge (H, W·C), and the first merge where usable (0 elsewhere) and the usable
+    mask, padded by one neighbour step on every side so that the neighbour sums need no
+    bounds tests."""
+    dn, sy, sx = frames[0], frames[7], frames[8]
+    h, n = dn.shape[1], dn.shape[2]
+    pad = (h + 2 * sy, n + 2 * sx)
+    return np.empty((h, n)), np.zeros(pad), np.zeros(pad)
+
+
+@numba.njit(cache=True, parallel=True)
+def _merge_par(frames, out):  # noqa: ANN001
+    """Both steps of merge_frames_local on rows of values (B, H, W·C), rows in parallel: each
+    value's arithmetic is its own, so the result is the serial twin's bit for bit.
+    `frames` = (dn, offset, gain, white, t, read σ, valid, the neighbours' strides in rows and
+    in values, margin σ)."""
+    state = _merge_state(frames)
+    for y in numba.prange(frames[0].shape[1]):
+        _first_row(y, frames, state)
+    for y in numba.prange(frames[0].shape[1]):
+        _final_row(y, frames, state, out)
+
+
+@numba.njit(cache=True)
+def _merge_ser(frames, out):  # noqa: ANN001
+    """`_merge_par` on one thread (small frames, or cores busy: fitting.kernels.dispatch)."""
+    state = _merge_state(frames)
+    for y in range(frames[0].shape[1]):
+        _first_row(y, frames, state)
+    for y in range(frames[0].shape[1]):
+        _final_row(y, frames, state, out)

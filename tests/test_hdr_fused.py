@@ -66,3 +66,35 @@ def test_fused_merge_is_the_documented_merge(shape, cfa) -> None:
     finite = np.isfinite(want[1])
     np.testing.assert_array_equal(np.isfinite(got[1]), finite)
     np.testing.assert_allclose(got[1][finite], want[1][finite], rtol=1e-12, atol=0)
+
+
+def test_threads_do_not_change_the_merge_or_the_geometry() -> None:
+    """The parallel twins (rows on numba's threads) give the serial ones' results bit for bit:
+    every value's arithmetic is its own, so only the speed may depend on the machine's load
+    (the "auto" policy picks a twin by timing, fitting.kernels.set_threading)."""
+    from calibration.geometry import Intrinsics, pixel_geometry
+    from fitting.kernels import PARALLEL_MIN_WORK, set_threading
+
+    rng = np.random.default_rng(11)
+    shape = (320, 256)  # 81 920 values ≥ PARALLEL_MIN_WORK: threads are allowed
+    assert shape[0] * shape[1] >= PARALLEL_MIN_WORK
+    dn, dark_dn = _frames(shape, rng)
+    brackets = RawBrackets(dn, dark_dn, EXPOSURES_S, READ_E, GAIN_E_PER_DN, WHITE_DN)
+    valid = rng.random(shape) < 0.9
+    intr = Intrinsics(shape[1], shape[0], 900.0, 900.0, 127.5, 159.5)
+    cam = np.array([0.1, 0.05, 0.45])
+
+    def run() -> tuple:
+        merged = merge_frames_local(brackets, valid=valid, cfa=True)
+        geo = pixel_geometry(intr, cam, np.array([-0.2, 0.0, 0.4]), 0.05)
+        return (*merged, geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
+
+    previous = set_threading("serial")
+    try:
+        serial = run()
+        set_threading("parallel")
+        threaded = run()
+    finally:
+        set_threading(previous)
+    for a, b in zip(serial, threaded, strict=True):
+        np.testing.assert_array_equal(a, b)
