@@ -67,8 +67,8 @@ def calibration_take_description(run_dir: str | Path, kind: str) -> dict:
 
 
 def _decoded(run_dir: Path, entries: list[dict]) -> Iterator[DecodedFrame]:
-    """The entries' frames, decoded one at a time as the master that takes them asks, the next
-    one while the master works on this one (plumbing.prefetch); all of one shape. Masters
+    """The entries' frames, decoded as the master that takes them asks, the next two on both
+    cores while the master works on this one (plumbing.prefetch); all of one shape. Masters
     accumulate frame by frame: holding every frame at once and then a stack of them cost
     2 × N frames of float64 — 12 GB for the default 32 flats of a 24 MP camera
     (benchmarks/bench_camera_scale.py)."""
@@ -80,7 +80,7 @@ def _decoded(run_dir: Path, entries: list[dict]) -> Iterator[DecodedFrame]:
             raise CalibrationFrameError(f"{e['kind']} frame unusable: {exc}") from None
 
     shape = None
-    for frame in prefetched(decode, entries):
+    for frame in prefetched(decode, entries, ahead=2):  # the masters wait on the decoder
         if shape is None:
             shape = frame.dn.shape
         elif frame.dn.shape != shape:

@@ -1,13 +1,17 @@
-"""Work on one item while the next is prepared: `prefetched(fn, items)` yields fn(item) for
-each item in order, computing the next one in a background thread while the caller works on
-the current one. For reading and decoding frames (file reads, LibRaw, OpenEXR and SHA-256
-release the GIL) ahead of the numeric work on the last ones: at most two results exist at
-once, so memory stays that of two items. An exception in fn is raised where its item's result
-is taken, in order, as a plain loop would raise it.
+"""Work on one item while the next are prepared: `prefetched(fn, items, ahead=1)` yields
+fn(item) for each item in order, computing the next `ahead` ones in background threads while
+the caller works on the current one. For reading and decoding frames (file reads, LibRaw,
+OpenEXR and SHA-256 release the GIL) ahead of the numeric work on the last ones: at most
+ahead + 1 results exist at once, so memory stays that of a few items. One ahead suits a caller
+with much work per item (a pose's reduction keeps the other core busy); two suit a caller that
+only accumulates (master darks and flats, which wait on the decoder). An exception in fn is
+raised where its item's result is taken, in order, as a plain loop would raise it.
 """
 
 from __future__ import annotations
 
+import itertools
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
@@ -18,19 +22,13 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def prefetched(fn: Callable[[T], R], items: Iterable[T]) -> Iterator[R]:
+def prefetched(fn: Callable[[T], R], items: Iterable[T], ahead: int = 1) -> Iterator[R]:
     it = iter(items)
-    with ThreadPoolExecutor(max_workers=1) as worker:
-        try:
-            ahead = worker.submit(fn, next(it))
-        except StopIteration:
-            return
-        while True:
-            result = ahead.result()
-            try:
-                ahead = worker.submit(fn, next(it))
-            except StopIteration:
-                yield result
-                return
+    with ThreadPoolExecutor(max_workers=ahead) as workers:
+        pending = deque(workers.submit(fn, item) for item in itertools.islice(it, ahead))
+        while pending:
+            result = pending.popleft().result()
+            for item in itertools.islice(it, 1):
+                pending.append(workers.submit(fn, item))
             yield result
-            del result  # the caller's copy is the only one left while the next one is made
+            del result  # the caller's copy is the only one left while the next ones are made
