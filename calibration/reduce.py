@@ -65,9 +65,6 @@ from calibration.planes import (
     Plane,
     PlaneError,
     RunCalibration,
-    block_all,
-    block_any,
-    block_mean,
     pose_planes,
 )
 from calibration.radiometry import CameraRadiometry, surface_irradiance
@@ -78,6 +75,7 @@ from calibration.reference import (
     pixel_scale,
     reference_entries,
 )
+from calibration.regions import region_means
 from calibration.texels import TexelGrid, check_replace
 from fitting.directions import vector_to_spherical
 from fitting.samples import Flags, SampleStream, SampleTable, read_samples, write_samples_streamed
@@ -688,39 +686,29 @@ def _reduce_pose(cal: RunCalibration, recs, decoded, intensity) -> Iterator[dict
     k_rad = cal.radiometry.radiance_per_electron_rate
     for c, pl in enumerate(planes):
         pl, off_image, b = _select(pl, seg, cal.options)
-        geo = pl.geo
-        on = block_all(geo.on_sample, b)
-        if not on.any():
-            continue
-        e_surf_geom = surface_irradiance(1.0, geo.wi[..., 2], geo.light_distance_m)  # × I
-        wi = block_mean(geo.wi, b)
-        wo = block_mean(geo.wo, b)
-        wi /= np.linalg.norm(wi, axis=-1, keepdims=True)
-        wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
-        ti, pi = vector_to_spherical(wi[on])
-        to, po = vector_to_spherical(wo[on])
-        ys, xs = np.nonzero(on)
-        px = (xs * b + (b - 1) / 2.0) * pl.step + pl.offset + pl.origin[0]
-        py = (ys * b + (b - 1) / 2.0) * pl.step + pl.offset + pl.origin[1]
         scale = k_rad / pl.sites  # summed greens count twice the photosite area
         if pl.name != "Y":
             i_c = float(intensity[min(c, len(intensity) - 1)])
         else:
             i_c = float(np.mean(intensity))
-        e_surf = e_surf_geom * i_c
-        with np.errstate(divide="ignore", invalid="ignore"):
-            f_px = pl.flux * scale / e_surf
-            var_f_px = pl.var * (scale / e_surf) ** 2
-        f_reg = block_mean(f_px, b)[on]
-        n_px = b * b
+        reg = region_means(pl, off_image, b, scale, i_c)
+        if reg is None:
+            continue
+        wi = reg.wi / np.linalg.norm(reg.wi, axis=-1, keepdims=True)
+        wo = reg.wo / np.linalg.norm(reg.wo, axis=-1, keepdims=True)
+        ti, pi = vector_to_spherical(wi)
+        to, po = vector_to_spherical(wo)
+        px = (reg.cols * b + (b - 1) / 2.0) * pl.step + pl.offset + pl.origin[0]
+        py = (reg.rows * b + (b - 1) / 2.0) * pl.step + pl.offset + pl.origin[1]
+        f_reg = reg.f
         # Statistical σ only (photon, read and dark noise, flat-field noise). The scale's σ is
         # one error shared by every sample of the channel: in quadrature here it would average
         # away as 1/√N in kd and ks, so it goes to the budget (gonio.budget) instead and the
         # fit carries it as a shared component (fitting.budget).
-        sigma_reg = np.sqrt(block_mean(var_f_px, b)[on] / n_px)
+        sigma_reg = np.sqrt(reg.var_f / (b * b))
         flags = np.zeros(f_reg.shape, np.int32)
-        flags[block_any(pl.all_sat, b)[on]] |= Flags.SATURATED
-        flags[block_any(off_image, b)[on]] |= Flags.MASKED
+        flags[reg.saturated] |= Flags.SATURATED
+        flags[reg.masked] |= Flags.MASKED
         with np.errstate(divide="ignore", invalid="ignore"):
             snr = f_reg / sigma_reg
         flags[~(snr >= cal.options.min_snr)] |= Flags.DARK
@@ -740,7 +728,7 @@ def _reduce_pose(cal: RunCalibration, recs, decoded, intensity) -> Iterator[dict
         }
         if cal.options.texel_mm:
             grid = TexelGrid(cal.options.texel_mm * 1e-3, cal.sample_size_m)
-            piece["texel"] = grid.index(block_mean(geo.point_m, b)[on]).astype(np.int32)
+            piece["texel"] = grid.index(reg.point_m).astype(np.int32)
         yield piece
 
 

@@ -1,0 +1,75 @@
+"""calibration.regions.region_means (the one-pass region sums a reduction bins with) against
+the same means written as whole-plane numpy (the reduction's formulation before the kernel):
+f = Φ·scale/(I cos θ_i/r²) and its variance per pixel, then b × b block means of those and of
+ω_i, ω_o and the surface point, and any-saturated / any-masked per region, for the regions
+whose pixels are all on the sample. Asserted bit for bit: both sum each region's pixels row
+by row in the same IEEE operations."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acquisition.config import PlanConfig
+from acquisition.store import RunStore
+from calibration.planes import block_all, block_any, block_mean, pose_planes
+from calibration.radiometry import surface_irradiance
+from calibration.reduce import ReduceOptions, _captures_by_pose, _decode_pose, _run_calibration
+from calibration.regions import region_means
+from gonio.pipeline import AcquireSpec, acquire
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def planes(tmp_path_factory: pytest.TempPathFactory):
+    plan = PlanConfig.model_validate(
+        {
+            "name": "tiny",
+            "type": "isotropic",
+            "theta_i_deg": [40.0],
+            "theta_o_deg": [30.0],
+            "delta_phi_deg": [180.0],
+            "exposures_s": [0.002, 0.016],
+        }
+    )
+    out = tmp_path_factory.mktemp("regions") / "run"
+    spec = AcquireSpec(
+        rig=REPO / "configs" / "rigs" / "sim.toml",
+        scene=REPO / "configs" / "scenes" / "raw.toml",
+        progress=False,
+        plan=plan,
+    )
+    assert acquire(out, spec).outcome.complete
+    with RunStore.open(out) as store:
+        cal, _rig = _run_calibration(store, out, ReduceOptions())
+        recs = next(iter(_captures_by_pose(store, out).values()))
+    good, decoded = _decode_pose(recs, out, [], False)
+    exposures = [float(r.exposure_s) for r in good]
+    return pose_planes(cal, decoded, exposures, good[0].axes_measured)
+
+
+@pytest.mark.parametrize("b", [1, 2, 3])
+def test_region_means_are_the_block_means_of_the_pixels(planes, b: int) -> None:
+    plane_list, seg = planes
+    scale, intensity = 3.7e-9, 0.8
+    for pl in plane_list:
+        off = ~seg
+        reg = region_means(pl, off, b, scale, intensity)
+        geo = pl.geo
+        on = block_all(geo.on_sample, b)
+        assert reg is not None and reg.f.size == on.sum() > 10
+        e = surface_irradiance(1.0, geo.wi[..., 2], geo.light_distance_m) * intensity
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f_px = pl.flux * scale / e
+            var_px = pl.var * (scale / e) ** 2
+        np.testing.assert_array_equal(np.column_stack(np.nonzero(on)), np.c_[reg.rows, reg.cols])
+        np.testing.assert_array_equal(reg.f, block_mean(f_px, b)[on])
+        np.testing.assert_array_equal(reg.var_f, block_mean(var_px, b)[on])
+        np.testing.assert_array_equal(reg.wi, block_mean(geo.wi, b)[on])
+        np.testing.assert_array_equal(reg.wo, block_mean(geo.wo, b)[on])
+        np.testing.assert_array_equal(reg.point_m, block_mean(geo.point_m, b)[on])
+        np.testing.assert_array_equal(reg.saturated, block_any(pl.all_sat, b)[on])
+        np.testing.assert_array_equal(reg.masked, block_any(off, b)[on])
