@@ -193,12 +193,15 @@ def merge_frames_local(
     valid: np.ndarray | None = None,
     cfa: bool = False,
     margin_sigma: float = 5.0,
+    flat: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`merge_brackets_local` from the raw frames in one compiled pass per step (the same
     maths, without its whole-image float64 temporaries: about 20 of them per bracket).
 
     Electrons are (DN − offset)·gain, as calibration.planes.merge_pose forms them for
     `merge_brackets_local`; ``valid``, ``cfa`` and ``margin_sigma`` are its arguments.
+    ``flat``: a flat field's (gain, relative variance), frame-shaped, applied to the merged
+    flux in the same pass as calibration.flatfield.FlatField.apply does (Φ/g, Var/g² + Φ'²·v).
     Returns (flux e/s, variance (e/s)², all_saturated mask).
     """
     dn, offset_dn = brackets.dn, brackets.offset_dn
@@ -234,7 +237,13 @@ def merge_frames_local(
         float(margin_sigma),
     )
     # Threads for large frames when they pay (the fitting kernels' policy, `gonio --threads`).
-    dispatch("hdr_merge", _merge_par, _merge_ser, h * w * nc, frames, (flux, var, all_sat))
+    if flat is None:
+        field = (np.ones((1, 1)), np.zeros((1, 1)), False)
+    else:
+        field = tuple(np.ascontiguousarray(a, dtype=np.float64).reshape(h, w * nc) for a in flat)
+        field = (*field, True)
+    out = (flux, var, all_sat)
+    dispatch("hdr_merge", _merge_par, _merge_ser, h * w * nc, frames, field, out)
     return flux.reshape(shape), var.reshape(shape), all_sat.reshape(shape)
 
 
@@ -341,10 +350,12 @@ def _first_row(y, frames, state):  # noqa: ANN001
 
 
 @numba.njit(cache=True)
-def _final_row(y, frames, state, out):  # noqa: ANN001
+def _final_row(y, frames, field, state, out):  # noqa: ANN001
     """Step 2 for row y: the neighbours' mean, the brackets near the clip dropped by it, and
-    the merge weighted by it (or by the value's own merge where it has no usable neighbour)."""
+    the merge weighted by it (or by the value's own merge where it has no usable neighbour),
+    divided by the flat `field` = (gain, relative variance, applied?)."""
     dn, off, gain, white, t, read_e, _valid, sy, sx, margin = frames
+    flat_gain, flat_rel_var, apply_flat = field
     first, first_usable, usable = state
     flux, var, all_sat = out
     nb, n = dn.shape[0], dn.shape[2]
@@ -391,8 +402,14 @@ def _final_row(y, frames, state, out):  # noqa: ANN001
         for i in range(nb):
             kept += ok[i, x]
         none = kept == 0.0
-        flux[y, x] = s[shortest, x] / t[shortest] if none else est[x]
-        var[y, x] = np.inf if none else v[x]
+        phi_x = s[shortest, x] / t[shortest] if none else est[x]
+        var_x = np.inf if none else v[x]
+        if apply_flat:  # as FlatField.apply: Φ' = Φ/g, Var Φ' = Var Φ/g² + Φ'²·Var g/g²
+            g = flat_gain[y, x]
+            phi_x = phi_x / g
+            var_x = var_x / (g * g) + (phi_x * phi_x) * flat_rel_var[y, x]
+        flux[y, x] = phi_x
+        var[y, x] = var_x
         all_sat[y, x] = none
 
 
@@ -408,7 +425,7 @@ def _merge_state(frames):  # noqa: ANN001, ANN202
 
 
 @numba.njit(cache=True, parallel=True)
-def _merge_par(frames, out):  # noqa: ANN001
+def _merge_par(frames, field, out):  # noqa: ANN001
     """Both steps of merge_frames_local on rows of values (B, H, W·C), rows in parallel: each
     value's arithmetic is its own, so the result is the serial twin's bit for bit.
     `frames` = (dn, offset, gain, white, t, read σ, valid, the neighbours' strides in rows and
@@ -417,14 +434,14 @@ def _merge_par(frames, out):  # noqa: ANN001
     for y in numba.prange(frames[0].shape[1]):
         _first_row(y, frames, state)
     for y in numba.prange(frames[0].shape[1]):
-        _final_row(y, frames, state, out)
+        _final_row(y, frames, field, state, out)
 
 
 @numba.njit(cache=True)
-def _merge_ser(frames, out):  # noqa: ANN001
+def _merge_ser(frames, field, out):  # noqa: ANN001
     """`_merge_par` on one thread (small frames, or cores busy: fitting.kernels.dispatch)."""
     state = _merge_state(frames)
     for y in range(frames[0].shape[1]):
         _first_row(y, frames, state)
     for y in range(frames[0].shape[1]):
-        _final_row(y, frames, state, out)
+        _final_row(y, frames, field, state, out)

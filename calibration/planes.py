@@ -288,15 +288,18 @@ def merge_pose(cal: RunCalibration, decoded, exposures, on_sample=None, window=N
         k,
         radiometry.white_level_dn,
     )
+    field = None
+    if flat is not None:
+        if flat.gain.shape != shape:
+            raise PlaneError(f"flat field shape {flat.gain.shape} ≠ frame {shape}")
+        window_flat = cut.flat(flat)
+        field = (window_flat.gain, window_flat.rel_var)
     flux, var, all_sat = merge_frames_local(
         brackets,
         valid=on_sample,
         cfa=decoded[0].channels == "CFA",
+        flat=field,  # divided out in the merge's own pass
     )
-    if flat is not None:
-        if flat.gain.shape != shape:
-            raise PlaneError(f"flat field shape {flat.gain.shape} ≠ frame {shape}")
-        flux, var = cut.flat(flat).apply(flux, var)
     return flux, var, all_sat
 
 

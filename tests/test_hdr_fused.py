@@ -98,3 +98,23 @@ def test_threads_do_not_change_the_merge_or_the_geometry() -> None:
         set_threading(previous)
     for a, b in zip(serial, threaded, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_the_flat_divided_in_the_merge_is_the_flat_fields_own_division() -> None:
+    """`flat=` divides the merged flux in the kernel's pass exactly as FlatField.apply does
+    after it (the same IEEE operations: bit for bit)."""
+    from calibration.flatfield import FlatField
+
+    rng = np.random.default_rng(5)
+    shape = (48, 64)
+    dn, dark_dn = _frames(shape, rng)
+    gain = rng.uniform(0.7, 1.1, shape)
+    rel_var = rng.uniform(1e-6, 1e-4, shape)
+    brackets = RawBrackets(dn, dark_dn, EXPOSURES_S, READ_E, GAIN_E_PER_DN, WHITE_DN)
+    plain = merge_frames_local(brackets, cfa=True)
+    want = FlatField(gain, rel_var, 0.01, 32).apply(plain[0], plain[1])
+    got = merge_frames_local(brackets, cfa=True, flat=(gain, rel_var))
+    assert not np.array_equal(got[0], plain[0])
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    np.testing.assert_array_equal(got[2], plain[2])
