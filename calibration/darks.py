@@ -142,6 +142,9 @@ def _welford_update(mean, m2, x, n):  # noqa: ANN001
 @dataclass(frozen=True)
 class DarkLibrary:
     masters: dict[float, MasterDark]
+    # The masters' DN as one array (exposures ascending), the masters' own `dn` views into it
+    # (load_darks): a pose's brackets then take their darks as one view, not a stacked copy.
+    stack: np.ndarray | None = None
 
     def for_exposure(self, exposure_s: float) -> MasterDark:
         """The master taken at this exposure (relative match 1e-6); dark current is linear in
@@ -151,6 +154,21 @@ class DarkLibrary:
                 return m
         have = ", ".join(f"{t:g}" for t in sorted(self.masters))
         raise CalibrationFrameError(f"no master dark for exposure {exposure_s:g} s (have: {have})")
+
+    def stacked(self, exposures_s: list[float]) -> np.ndarray | None:
+        """The masters of `exposures_s`, in that order, as one (B, …) view of `stack` when they
+        are consecutive in it (brackets recorded shortest first, as plans do); else None."""
+        if self.stack is None:
+            return None
+        order = sorted(self.masters)
+        try:
+            idx = [order.index(next(t for t in order if abs(t - e) <= 1e-6 * max(t, e)))
+                   for e in exposures_s]  # fmt: skip
+        except StopIteration:
+            return None
+        if idx != list(range(idx[0], idx[0] + len(idx))):
+            return None
+        return self.stack[idx[0] : idx[0] + len(idx)]
 
 
 def load_darks(run_dir: str | Path) -> DarkLibrary | None:
@@ -162,4 +180,10 @@ def load_darks(run_dir: str | Path) -> DarkLibrary | None:
     by_t: dict[float, list[dict]] = {}
     for e in entries:
         by_t.setdefault(float(e["exposure_s"]), []).append(e)
-    return DarkLibrary({t: master_dark(_decode_all(run_dir, es), t) for t, es in by_t.items()})
+    masters = {t: master_dark(_decode_all(run_dir, es), t) for t, es in sorted(by_t.items())}
+    stack = np.stack([m.dn for m in masters.values()])  # the masters' arrays are then freed
+    masters = {
+        t: MasterDark(m.exposure_s, stack[k], m.temporal_var_dn2, m.n_frames)
+        for k, (t, m) in enumerate(masters.items())
+    }
+    return DarkLibrary(masters, stack)

@@ -226,7 +226,8 @@ def merge_frames_local(
     step = 2 if cfa else 1  # a mosaic's same-colour neighbours are 2 photosites away
     frames = (
         np.ascontiguousarray(dn).reshape(b, h, w * nc),
-        np.ascontiguousarray(offset_dn, dtype=np.float64).reshape(b, h, w * nc),
+        # A view where the strides allow (a window of the darks' stack, a broadcast level).
+        np.asarray(offset_dn, dtype=np.float64).reshape(b, h, w * nc),
         float(gain_e_per_dn),
         float(white_dn),
         t,
@@ -240,7 +241,7 @@ def merge_frames_local(
     if flat is None:
         field = (np.ones((1, 1)), np.zeros((1, 1)), False)
     else:
-        field = tuple(np.ascontiguousarray(a, dtype=np.float64).reshape(h, w * nc) for a in flat)
+        field = tuple(np.asarray(a, dtype=np.float64).reshape(h, w * nc) for a in flat)
         field = (*field, True)
     out = (flux, var, all_sat)
     dispatch("hdr_merge", _merge_par, _merge_ser, h * w * nc, frames, field, out)
