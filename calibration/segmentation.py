@@ -34,6 +34,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 __all__ = ["Segmentation", "segment_sample", "iou", "polygon_mask"]
@@ -74,10 +75,34 @@ def polygon_mask(shape: tuple[int, int], corners_px: np.ndarray) -> np.ndarray:
     return inside
 
 
-def _sample_bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    from scipy.ndimage import map_coordinates
+@numba.njit(cache=True)
+def _bilinear(img, u, v):  # noqa: ANN001, ANN202
+    """`img` at (u, v) = (column, row), bilinear, the edge values beyond the image (as
+    scipy.ndimage.map_coordinates(order=1, mode="nearest"): tests/test_segmentation.py)."""
+    h, w = img.shape
+    u0, v0 = np.floor(u), np.floor(v)
+    fu, fv = u - u0, v - v0
+    iu, iv = int(u0), int(v0)
+    c0, c1 = min(max(iu, 0), w - 1), min(max(iu + 1, 0), w - 1)
+    r0, r1 = min(max(iv, 0), h - 1), min(max(iv + 1, 0), h - 1)
+    top = img[r0, c0] * (1.0 - fu) + img[r0, c1] * fu
+    bottom = img[r1, c0] * (1.0 - fu) + img[r1, c1] * fu
+    return top * (1.0 - fv) + bottom * fv
 
-    return map_coordinates(img, [v, u], order=1, mode="nearest")
+
+@numba.njit(cache=True)
+def _steps_across(ell, var_ell, p_out, p_in):  # noqa: ANN001, ANN202
+    """ℓ(p_out) − ℓ(p_in) and σ²_ℓ(p_out) + σ²_ℓ(p_in) at every (offset, position) of a side
+    (p_* of shape (D, T, 2), (u, v) last): the four bilinear samples in one pass."""
+    n_d, n_t = p_out.shape[0], p_out.shape[1]
+    diff = np.empty((n_d, n_t))
+    var = np.empty((n_d, n_t))
+    for i in range(n_d):
+        for j in range(n_t):
+            uo, vo, ui, vi = p_out[i, j, 0], p_out[i, j, 1], p_in[i, j, 0], p_in[i, j, 1]
+            diff[i, j] = _bilinear(ell, uo, vo) - _bilinear(ell, ui, vi)
+            var[i, j] = _bilinear(var_ell, uo, vo) + _bilinear(var_ell, ui, vi)
+    return diff, var
 
 
 def _robust_line(
@@ -201,12 +226,7 @@ def _side_edges(log_image, a, b, n_hat, search: _EdgeSearch):  # noqa: ANN001
     # All offsets at once: (D, T) samples just outside and just inside each offset line.
     p_out = base + (d_grid[:, None, None] + 1.0) * n_hat
     p_in = base + (d_grid[:, None, None] - 1.0) * n_hat
-    diff = _sample_bilinear(ell, p_out[..., 0], p_out[..., 1]) - _sample_bilinear(
-        ell, p_in[..., 0], p_in[..., 1]
-    )
-    var = _sample_bilinear(var_ell, p_out[..., 0], p_out[..., 1]) + _sample_bilinear(
-        var_ell, p_in[..., 0], p_in[..., 1]
-    )
+    diff, var = _steps_across(ell, var_ell, p_out, p_in)
     ts, ds, ws = [], [], []
     # Per-segment means in one pass (seg_id is sorted along the side).
     starts = np.flatnonzero(np.r_[True, seg_id[1:] != seg_id[:-1]])
