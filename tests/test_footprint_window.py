@@ -29,8 +29,10 @@ from gonio.pipeline import AcquireSpec, acquire
 REPO = Path(__file__).resolve().parent.parent
 
 
-@pytest.fixture(scope="module")
-def dng_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+@pytest.fixture(scope="module", params=["raw.toml", "demo.toml"], ids=["dng-mosaic", "exr-rgb"])
+def run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A two-pose run as RGGB DNG (raw.toml) and as RGB EXR (demo.toml): a mosaic's window
+    steps by 2 photosites, an RGB frame's by 1 with 3 values per pixel."""
     plan = PlanConfig.model_validate(
         {
             "name": "tiny",
@@ -55,7 +57,7 @@ def dng_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("window") / "run"
     spec = AcquireSpec(
         rig=rig,
-        scene=REPO / "configs" / "scenes" / "raw.toml",
+        scene=REPO / "configs" / "scenes" / request.param,
         progress=False,
         plan=plan,
     )
@@ -63,12 +65,12 @@ def dng_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def test_a_pose_in_its_window_is_the_whole_frame_there(dng_run: Path) -> None:
-    with RunStore.open(dng_run) as store:
-        cal, _rig = _run_calibration(store, dng_run, ReduceOptions(bin_px=2))
-        by_pose = _captures_by_pose(store, dng_run)
+def test_a_pose_in_its_window_is_the_whole_frame_there(run: Path) -> None:
+    with RunStore.open(run) as store:
+        cal, _rig = _run_calibration(store, run, ReduceOptions(bin_px=2))
+        by_pose = _captures_by_pose(store, run)
     for recs in by_pose.values():
-        good, decoded = _decode_pose(recs, dng_run, [], False)
+        good, decoded = _decode_pose(recs, run, [], False)
         exposures = [float(r.exposure_s) for r in good]
         args = (cal, decoded, exposures, good[0].axes_measured)
         whole, seg_whole = pose_planes(*args, crop=False)
