@@ -237,13 +237,13 @@ def merge_frames_local(
         step * nc,
         float(margin_sigma),
     )
-    # Threads for large frames when they pay (the fitting kernels' policy, `gonio --threads`).
     if flat is None:
         field = (np.ones((1, 1)), np.zeros((1, 1)), False)
     else:
         field = tuple(np.asarray(a, dtype=np.float64).reshape(h, w * nc) for a in flat)
         field = (*field, True)
     out = (flux, var, all_sat)
+    # Threads for large frames when they pay (the fitting kernels' policy, `gonio --threads`).
     dispatch("hdr_merge", _merge_par, _merge_ser, h * w * nc, frames, field, out)
     return flux.reshape(shape), var.reshape(shape), all_sat.reshape(shape)
 

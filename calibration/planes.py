@@ -258,20 +258,17 @@ def merge_pose(cal: RunCalibration, decoded, exposures, on_sample=None, window=N
     k = radiometry.gain_e_per_dn
     shape = decoded[0].dn.shape
     cut = Window.whole(shape) if window is None else window
-    dn, offsets, noise_sd = [], [], []
+    dn, noise_sd = [], []
     for d, t in zip(decoded, exposures, strict=True):
         if d.dn.shape != shape:
             raise PlaneError(f"{d.path}: frame shape {d.dn.shape} differs from {shape}")
         dn.append(cut.of(d.dn))
         if darks is not None:
             dark = darks.for_exposure(t)  # CalibrationFrameError names the missing exposure
-            dark_dn = cut.of(dark.dn) if np.ndim(dark.dn) >= 2 else dark.dn
-            offsets.append(np.broadcast_to(dark_dn, dn[-1].shape))
             # Signal-independent variance: the frame's own (measured) dark noise plus that of
             # the master subtracted from it.
             noise_sd.append(k * math.sqrt(dark.temporal_var_dn2 + dark.master_var_dn2))
         else:
-            offsets.append(np.broadcast_to(float(radiometry.black_level_dn), dn[-1].shape))
             noise_sd.append(math.sqrt(radiometry.read_noise_e**2 + k**2 / 12.0))
     # Electrons (DN − dark or black)·gain; a bracket is saturated at the camera's clip level
     # (full well, which can sit far below the ADC's white level) and clips at (white − dark)·gain.
@@ -280,16 +277,9 @@ def merge_pose(cal: RunCalibration, decoded, exposures, on_sample=None, window=N
     # merge_frames_local computes without whole-frame temporaries: own-value weights and
     # saturation tests bias the flux and any σ-weighted fit by O(1/N_electrons)).
     # Off-sample neighbours (holder, background) do not enter the local estimate.
-    # The darks as one view of the library's stack when the brackets' masters lie in it in
-    # order (a stacked copy cost ~0.1 GB a 5 MP pose); the black level as a broadcast.
-    stacked = None if darks is None else darks.stacked(list(exposures))
-    if stacked is not None:
-        stacked = stacked[:, cut.y0 : cut.y1, cut.x0 : cut.x1]
-    elif darks is None:
-        stacked = np.broadcast_to(float(radiometry.black_level_dn), (len(dn), *dn[0].shape))
     brackets = RawBrackets(
         np.stack(dn),
-        np.stack(offsets) if stacked is None else stacked,
+        _offsets(cal, exposures, cut, (len(dn), *dn[0].shape)),
         list(exposures),
         np.asarray(noise_sd),
         k,
@@ -308,6 +298,19 @@ def merge_pose(cal: RunCalibration, decoded, exposures, on_sample=None, window=N
         flat=field,  # divided out in the merge's own pass
     )
     return flux, var, all_sat
+
+
+def _offsets(cal: RunCalibration, exposures, cut: Window, shape: tuple[int, ...]) -> np.ndarray:
+    """What each bracket reads at zero signal, (B, …) in the window: the black level broadcast
+    without darks; with them one view of the darks' stack when the brackets' masters lie in it
+    in order (a stacked copy cost ~0.1 GB a 5 MP pose), else a stack of their windows."""
+    darks = cal.darks
+    if darks is None:
+        return np.broadcast_to(float(cal.radiometry.black_level_dn), shape)
+    stacked = darks.stacked(list(exposures))
+    if stacked is not None:
+        return stacked[:, cut.y0 : cut.y1, cut.x0 : cut.x1]
+    return np.stack([cut.of(darks.for_exposure(t).dn) for t in exposures])
 
 
 def pose_planes(

@@ -19,30 +19,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquisition.config import PlanConfig
 from acquisition.store import RunStore
 from calibration.planes import pose_planes
 from calibration.reduce import ReduceOptions, _captures_by_pose, _decode_pose, _run_calibration
 from fitting.samples import SampleStream, SampleTable, read_samples, write_samples
-from gonio.pipeline import AcquireSpec, acquire
-
-REPO = Path(__file__).resolve().parent.parent
+from tests._small_runs import REPO, small_run
 
 
 @pytest.fixture(scope="module", params=["raw.toml", "demo.toml"], ids=["dng-mosaic", "exr-rgb"])
 def run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A two-pose run as RGGB DNG (raw.toml) and as RGB EXR (demo.toml): a mosaic's window
     steps by 2 photosites, an RGB frame's by 1 with 3 values per pixel."""
-    plan = PlanConfig.model_validate(
-        {
-            "name": "tiny",
-            "type": "isotropic",
-            "theta_i_deg": [30.0],
-            "theta_o_deg": [0.0, 50.0],
-            "delta_phi_deg": [180.0],
-            "exposures_s": [0.002, 0.016],
-        }
-    )
     from acquisition.config import load_rig
 
     # The sim rig's camera with a 160 × 160 sensor and nominal intrinsics: the sample spans
@@ -55,14 +42,7 @@ def run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
         }
     )
     out = tmp_path_factory.mktemp("window") / "run"
-    spec = AcquireSpec(
-        rig=rig,
-        scene=REPO / "configs" / "scenes" / request.param,
-        progress=False,
-        plan=plan,
-    )
-    assert acquire(out, spec).outcome.complete
-    return out
+    return small_run(out, request.param, theta_o_deg=(0.0, 50.0), rig=rig)
 
 
 def test_a_pose_in_its_window_is_the_whole_frame_there(run: Path) -> None:

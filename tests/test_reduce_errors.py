@@ -10,38 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquisition.config import PlanConfig
 from acquisition.store import RunStore
 from calibration.reduce import CalibrationError, reduce_run
 from fitting.samples import read_samples
-from gonio.pipeline import AcquireSpec, acquire
+from tests._small_runs import small_run
 
 REPO = Path(__file__).resolve().parent.parent
 
 
 def _small_run(root: Path, scene: str) -> Path:
-    plan = PlanConfig.model_validate(
-        {
-            "name": "tiny",
-            "type": "isotropic",
-            "theta_i_deg": [30.0],
-            "theta_o_deg": [0.0, 30.0],
-            "delta_phi_deg": [180.0],
-            "exposures_s": [0.002, 0.016],
-        }
-    )
-    out = root / "run"
-    res = acquire(
-        out,
-        AcquireSpec(
-            rig=REPO / "configs" / "rigs" / "sim.toml",
-            scene=REPO / "configs" / "scenes" / scene,
-            progress=False,
-            plan=plan,
-        ),
-    )
-    assert res.outcome.complete
-    return out
+    return small_run(root / "run", scene)
 
 
 @pytest.fixture(scope="module")

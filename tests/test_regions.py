@@ -7,42 +7,21 @@ by row in the same IEEE operations."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-from acquisition.config import PlanConfig
 from acquisition.store import RunStore
 from calibration.planes import block_all, block_any, block_mean, pose_planes
 from calibration.radiometry import surface_irradiance
 from calibration.reduce import ReduceOptions, _captures_by_pose, _decode_pose, _run_calibration
 from calibration.regions import region_means
-from gonio.pipeline import AcquireSpec, acquire
-
-REPO = Path(__file__).resolve().parent.parent
+from tests._small_runs import small_run
 
 
 @pytest.fixture(scope="module")
 def planes(tmp_path_factory: pytest.TempPathFactory):
-    plan = PlanConfig.model_validate(
-        {
-            "name": "tiny",
-            "type": "isotropic",
-            "theta_i_deg": [40.0],
-            "theta_o_deg": [30.0],
-            "delta_phi_deg": [180.0],
-            "exposures_s": [0.002, 0.016],
-        }
-    )
     out = tmp_path_factory.mktemp("regions") / "run"
-    spec = AcquireSpec(
-        rig=REPO / "configs" / "rigs" / "sim.toml",
-        scene=REPO / "configs" / "scenes" / "raw.toml",
-        progress=False,
-        plan=plan,
-    )
-    assert acquire(out, spec).outcome.complete
+    small_run(out, "raw.toml", theta_i_deg=40.0, theta_o_deg=(30.0,))
     with RunStore.open(out) as store:
         cal, _rig = _run_calibration(store, out, ReduceOptions())
         recs = next(iter(_captures_by_pose(store, out).values()))
