@@ -46,6 +46,7 @@ from functools import cached_property
 import numpy as np
 from scipy.special import gammaln, log_ndtr
 
+from fitting.directions import spherical_to_vector
 from fitting.kernels import gauss_discrepancy_sum
 from fitting.nuisance import ANGLE_NUISANCES, arm_deltas, arm_rows, measured_geometry, to_si
 from fitting.priors import ParameterSpace
@@ -172,7 +173,6 @@ class Likelihood:
         self.n_considered = int(np.sum(usable & in_channels))
         if not self.censor:
             usable &= ~sat & ~dark
-        wi_all, wo_all = table.wi, table.wo
         self.data: list[ChannelData] = []
         # A dark row's value becomes its censoring bound, the detection limit (module docstring).
         f_all = np.asarray(table.f, dtype=np.float64)
@@ -194,8 +194,9 @@ class Likelihood:
             self.data.append(
                 ChannelData(
                     ch,
-                    np.ascontiguousarray(wi_all[sel]),
-                    np.ascontiguousarray(wo_all[sel]),
+                    # per channel, not table.wi[sel]: no n × 3 temporaries of every row
+                    spherical_to_vector(table.theta_i[sel], table.phi_i[sel]),
+                    spherical_to_vector(table.theta_o[sel], table.phi_o[sel]),
                     f_all[sel],
                     np.asarray(table.sigma[sel], dtype=np.float64),
                     np.asarray(table.theta_i[sel], dtype=np.float64),
@@ -411,25 +412,35 @@ class Likelihood:
         for i, (d, fm) in enumerate(zip(self.data, self.predict(theta), strict=True)):
             with np.errstate(all="ignore"):
                 ref = self._scale_ref(i, fm)
-                var = d.sigma**2 if s is None else d.sigma**2 + (s[:, None] * ref) ** 2
+                var = d.sigma2 if s is None else d.sigma2 + (s[:, None] * ref) ** 2
                 var = np.broadcast_to(var, fm.shape)
                 r = d.f - fm
-                ll = np.empty(fm.shape)
-                ex = d.exact
-                ll[:, ex] = self._exact(r[:, ex], var[:, ex])
-                z = r / np.sqrt(var)
-                sat, dark = d.kind == 1, d.kind == 2
-                ll[:, sat] = log_ndtr(-z[:, sat])
-                ll[:, dark] = log_ndtr(z[:, dark])
-                if d.weight is not None:
-                    ll *= d.weight  # exact rows have weight 1
-            out.append(np.where(np.isfinite(fm), ll, -np.inf))
+                if d.kind.any():
+                    ll = np.empty(fm.shape)
+                    ex = d.exact
+                    ll[:, ex] = self._exact(r[:, ex], var[:, ex])
+                    z = r / np.sqrt(var)
+                    sat, dark = d.kind == 1, d.kind == 2
+                    ll[:, sat] = log_ndtr(-z[:, sat])
+                    ll[:, dark] = log_ndtr(z[:, dark])
+                    if d.weight is not None:
+                        ll *= d.weight  # exact rows have weight 1
+                else:  # every row exact: no masked copies of the (W, n) arrays
+                    ll = self._exact(r, var)
+                ll[~np.isfinite(fm)] = -np.inf
+            out.append(ll)
         ll = np.concatenate(out, axis=1)
-        return np.where(np.isnan(ll), -np.inf, ll)
+        ll[np.isnan(ll)] = -np.inf
+        return ll
 
     def _exact(self, r: np.ndarray, var: np.ndarray) -> np.ndarray:
-        if self.kind == "gaussian":
-            return -0.5 * (r * r / var + np.log(var) + _LN_2PI)
+        if self.kind == "gaussian":  # −½ (r²/v + ln v + ln 2π), in place: one (W, n) array
+            out = r * r
+            out /= var
+            out += np.log(var)
+            out += _LN_2PI
+            out *= -0.5
+            return out
         return (
             self._t_const
             - 0.5 * np.log(var)

@@ -56,6 +56,7 @@ __all__ = [
     "REGION_MIN_SAMPLES",
     "OTHER_REGIONS",
     "region_index",
+    "exact_regions",
     "region_label",
     "sandwich_adjust",
     "apply_transform",
@@ -83,16 +84,26 @@ _S_GRID = np.concatenate([[0.0], np.geomspace(1e-5, 1.0, 400)])
 _LEVELS = np.linspace(0.0, 1.0, 41)
 #: Rows per block when the regional likelihood is evaluated on the s grid (bounded memory).
 _BLOCK = 8192
+#: Rows per block of :func:`region_index` (≈ 10 temporaries of 1.5 MB each).
+_REGION_BLOCK = 65536
 
 
 def region_index(wi, wo) -> np.ndarray:
     """Index 0…8 of each (ω_i, ω_o) pair's region: 3 · (θ_h band) + (θ_d band)."""
     from fitting.rusinkiewicz import to_half_diff
 
-    th, td, _ = to_half_diff(np.asarray(wi, dtype=np.float64), np.asarray(wo, dtype=np.float64))
-    ih = np.clip(np.digitize(th, REGION_THETA_H) - 1, 0, REGION_THETA_H.size - 2)
-    idd = np.clip(np.digitize(td, REGION_THETA_D) - 1, 0, REGION_THETA_D.size - 2)
-    return (ih * (REGION_THETA_D.size - 1) + idd).astype(np.int64)
+    wi = np.asarray(wi, dtype=np.float64)
+    wo = np.asarray(wo, dtype=np.float64)
+    out = np.empty(wi.shape[:-1], np.int64)
+    flat_i, flat_o, flat = wi.reshape(-1, 3), wo.reshape(-1, 3), out.reshape(-1)
+    # in blocks of rows: the half/difference angles make several (n, 3) temporaries
+    for start in range(0, flat.size, _REGION_BLOCK):
+        sl = slice(start, start + _REGION_BLOCK)
+        th, td, _ = to_half_diff(flat_i[sl], flat_o[sl])
+        ih = np.clip(np.digitize(th, REGION_THETA_H) - 1, 0, REGION_THETA_H.size - 2)
+        idd = np.clip(np.digitize(td, REGION_THETA_D) - 1, 0, REGION_THETA_D.size - 2)
+        flat[sl] = ih * (REGION_THETA_D.size - 1) + idd
+    return out
 
 
 def region_label(k: int) -> str:
@@ -147,24 +158,37 @@ def _weights(lik, x: np.ndarray, s: float):
 def _leverage(lik, x: np.ndarray, s: float) -> np.ndarray:
     """h_j = g_jᵀ H⁻¹ g_j / v_j of every row of the likelihood (0 for censored rows), with g the
     model's gradient (central differences) and H = Σ g gᵀ/v over the exact rows; NaN where it
-    cannot be computed."""
+    cannot be computed.
+
+    Memory: the weighted gradient is the one n × k array (filled a column at a time); a row
+    that is not finite is zeroed in it, which takes it out of H exactly, and h is taken in
+    blocks of rows, not through an einsum of n × k copies."""
     space = lik.space
     cols = _model_columns(space)
-    f_hat, _ref, f, v = _weights(lik, x, s)
+    _f_hat, _ref, _f, v = _weights(lik, x, s)
+    inv_sd = 1.0 / np.sqrt(v)
+    del _f_hat, _ref, _f, v
     lo, hi = space.bounds
-    g = np.empty((f.size, cols.size))
+    gw = np.empty((inv_sd.size, cols.size))
     for k, i in enumerate(cols):
         h = 1e-6 * max(1.0, abs(float(x[i])))
         xp, xm = x.copy(), x.copy()
         xp[i] = min(x[i] + h, hi[i])
         xm[i] = max(x[i] - h, lo[i])
         with np.errstate(all="ignore"):
-            g[:, k] = (_predict_exact(lik, xp) - _predict_exact(lik, xm)) / (xp[i] - xm[i])
-    gw = g / np.sqrt(v)[:, None]
+            col = _predict_exact(lik, xp)
+            col -= _predict_exact(lik, xm)
+            col *= inv_sd / (xp[i] - xm[i])
+        gw[:, k] = col
     ok = np.all(np.isfinite(gw), axis=1)
-    lev = np.full(f.size, np.nan)
+    gw[~ok] = 0.0
+    lev = np.full(inv_sd.size, np.nan)
     with np.errstate(all="ignore"):
-        lev[ok] = np.einsum("ij,jk,ik->i", gw[ok], np.linalg.pinv(gw[ok].T @ gw[ok]), gw[ok])
+        h_pinv = np.linalg.pinv(gw.T @ gw)
+        for start in range(0, gw.shape[0], _BLOCK):
+            b = gw[start : start + _BLOCK]
+            lev[start : start + _BLOCK] = np.einsum("ij,jk,ik->i", b, h_pinv, b)
+    lev[~ok] = np.nan
     exact = np.concatenate([d.exact for d in lik.data])
     out = np.zeros(exact.size)
     out[exact] = lev
@@ -214,6 +238,19 @@ def _scores(lik, x: np.ndarray, cols: np.ndarray, step: np.ndarray) -> np.ndarra
     return out
 
 
+def _hc3_scores(lik, x, cols, step, sd, lev) -> tuple[np.ndarray, np.ndarray]:
+    """(ψ, ok): the per-row scores over ``cols`` in units of ``sd``, each divided by 1 − h_j
+    (HC3: the row's score as if it had been left out of the fit, MacKinnon & White 1985), and
+    the rows where that is finite. Rows not ok are zero in ψ (so Σ ψ ψᵀ is over the ok rows)
+    rather than dropped: the n × d array is scaled in place, never copied."""
+    psi = _scores(lik, x, cols, step)
+    psi *= sd
+    ok = np.all(np.isfinite(psi), axis=1) & np.isfinite(lev)
+    psi /= (1.0 - np.clip(np.where(ok, lev, 0.0), 0.0, 0.99))[:, None]
+    psi[~ok] = 0.0
+    return psi, ok
+
+
 def _sandwich_map(lik, draws: np.ndarray, cols: np.ndarray, lev: np.ndarray):
     """(linear map A over ``cols``, clipped and raw variance ratios) of the adjustment, or None
     when the observed information is not positive definite (a parameter at a prior bound or not
@@ -226,10 +263,7 @@ def _sandwich_map(lik, draws: np.ndarray, cols: np.ndarray, lev: np.ndarray):
     # and its round-off (≈ 1e-16·|ln L|) divided by step² stays below 1e-8 of the curvature.
     step = 0.05 * sd
     info_obs = _stencil_hessian(lik, x, cols, step) * np.outer(sd, sd)  # in units of sd
-    psi = _scores(lik, x, cols, step) * sd
-    ok = np.all(np.isfinite(psi), axis=1) & np.isfinite(lev)
-    # HC3: each row's score as if the row had been left out of the fit (MacKinnon & White 1985).
-    psi = psi[ok] / (1.0 - np.clip(lev[ok], 0.0, 0.99))[:, None]
+    psi, _ok = _hc3_scores(lik, x, cols, step, sd, lev)
     try:
         chol = np.linalg.cholesky(np.linalg.inv(info_obs))  # model-based covariance = L Lᵀ
     except np.linalg.LinAlgError:
@@ -263,14 +297,14 @@ def _cluster_map(lik, draws: np.ndarray, cols: np.ndarray, lev: np.ndarray):
         return None
     step = 0.05 * sd
     info_obs = _stencil_hessian(lik, x, cols, step) * np.outer(sd, sd)
-    psi = _scores(lik, x, cols, step) * sd
-    ok = np.all(np.isfinite(psi), axis=1) & np.isfinite(lev)
-    psi = psi[ok] / (1.0 - np.clip(lev[ok], 0.0, 0.99))[:, None]
+    psi, ok = _hc3_scores(lik, x, cols, step, sd, lev)
     groups, inverse = np.unique(clusters[ok], return_inverse=True)
     if groups.size <= 2 * cols.size:
         return None
-    per = np.zeros((groups.size, cols.size))
-    np.add.at(per, inverse, psi)
+    per = np.stack(
+        [np.bincount(inverse, weights=psi[ok, a], minlength=groups.size) for a in range(cols.size)],
+        axis=1,
+    )
     j = per.T @ per * groups.size / (groups.size - 1)
     try:
         i_inv = np.linalg.inv(info_obs)
@@ -381,6 +415,14 @@ def _grouping(regions: np.ndarray) -> list[tuple[str, np.ndarray]]:
     return groups
 
 
+def exact_regions(lik) -> np.ndarray:
+    """:func:`region_index` of every exact row of ``lik``, channels concatenated in
+    :func:`_weights`'s order (the order of ``lik.residuals``), without concatenating the rows'
+    directions first."""
+    out = [region_index(d.wi[d.exact], d.wo[d.exact]) for d in lik.data]
+    return np.concatenate(out) if out else np.zeros(0, np.int64)
+
+
 def regional_discrepancy(lik, x: np.ndarray) -> list[dict]:
     """The model error s_k (fraction of f̃) of each (θ_h, θ_d) region at the fitted θ = x:
     the posterior on a grid with a uniform prior on [0, 1] of
@@ -390,9 +432,7 @@ def regional_discrepancy(lik, x: np.ndarray) -> list[dict]:
     ``p16``, ``p84``, ``p97.5`` and ``quantiles`` (s at the levels 0, 2.5, … 100 %).
     """
     f_hat, ref, f, v0 = _weights(lik, x, 0.0)  # v0 = σ²
-    wi = np.concatenate([d.wi[d.exact] for d in lik.data])
-    wo = np.concatenate([d.wo[d.exact] for d in lik.data])
-    reg = region_index(wi, wo)
+    reg = exact_regions(lik)
     r2 = (f - f_hat) ** 2
     ok = np.isfinite(r2) & np.isfinite(ref)
     prior = np.log(np.gradient(_S_GRID))  # uniform in s on the non-uniform grid

@@ -29,7 +29,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from scipy.stats import chi2 as _chi2
 
-from fitting.mismatch import REGION_MIN_SAMPLES, region_index, region_label
+from fitting.mismatch import REGION_MIN_SAMPLES, exact_regions, region_label
 from fitting.priors import DISCREPANCY, ParameterSpec
 
 __all__ = [
@@ -236,9 +236,9 @@ def chi2_verdict(goodness: Mapping[str, float]) -> dict:
     return make_verdict("chi2", status, reason, advice)
 
 
-def _region_table(wi, wo, r) -> list[tuple[str, int, float, float]]:
-    """(label, n, χ²/n, mean residual) per (θ_h, θ_d) region with enough samples."""
-    reg = region_index(wi, wo)
+def _region_table(reg, r) -> list[tuple[str, int, float, float]]:
+    """(label, n, χ²/n, mean residual) per (θ_h, θ_d) region (index ``reg`` per row, from
+    fitting.mismatch.region_index) with enough samples."""
     rows = []
     for k in range(9):
         sel = reg == k
@@ -248,12 +248,13 @@ def _region_table(wi, wo, r) -> list[tuple[str, int, float, float]]:
     return rows
 
 
-def regions_verdict(wi, wo, residuals) -> dict:
+def regions_verdict(regions, residuals) -> dict:
     """χ²/n per region of (θ_h, θ_d) against its spread √(2/n), residuals (f − f̂)/σ of the
-    exact samples at directions wi, wo (N, 3). The worst region decides, with the thresholds
-    of :func:`chi2_verdict` (9 regions: |z| > 3 by chance somewhere with p ≈ 2.4 %)."""
+    exact samples in ``regions`` (their fitting.mismatch.region_index). The worst region
+    decides, with the thresholds of :func:`chi2_verdict` (9 regions: |z| > 3 by chance
+    somewhere with p ≈ 2.4 %)."""
     r = np.asarray(residuals, dtype=np.float64)
-    rows = _region_table(np.asarray(wi), np.asarray(wo), r)
+    rows = _region_table(np.asarray(regions), r)
     if not rows:
         return make_verdict(
             "regions", "ok", f"no region of (θ_h, θ_d) holds {REGION_MIN_SAMPLES} samples"
@@ -560,10 +561,8 @@ def judge(fit, lik, mcmc) -> tuple[list[dict], dict]:
 
 
 def _exact_residuals(lik, x_map: np.ndarray):
-    """(wi, wo, (f − f̂)/σ) of the exact samples at x_map, channels concatenated."""
-    wi = np.concatenate([d.wi[d.exact] for d in lik.data])
-    wo = np.concatenate([d.wo[d.exact] for d in lik.data])
-    return wi, wo, lik.residuals(x_map, "sigma")
+    """(region index, (f − f̂)/σ) of the exact samples at x_map, channels concatenated."""
+    return exact_regions(lik), lik.residuals(x_map, "sigma")
 
 
 def failed(verdicts: Sequence[Mapping]) -> list[str]:

@@ -260,3 +260,43 @@ def test_two_captures_of_one_pose_are_not_duplicates() -> None:
         check_samples(table, "t")
     table.extra["capture_id"] = np.repeat([1, 2], 20)
     assert len(check_samples(table, "t")) == 40
+
+
+def test_duplicate_groups_are_the_partition_of_equal_keys() -> None:
+    """The grouping (one lexicographic sort) against an independent one: numpy's unique rows of
+    the stacked keys, on a table with planted repeats (angles, channel and capture each shared
+    with another row while a single other key differs) and flagged rows left out."""
+    from fitting.formats.guards import _duplicate_groups
+
+    rng = np.random.default_rng(3)
+    n = 600
+    base = {k: rng.choice(rng.uniform(0, 1.2, 40), n) for k in ("theta_i", "theta_o")}
+    cols = {
+        **base,
+        "phi_i": rng.choice([0.0, 0.5], n),
+        "phi_o": rng.choice([0.0, 1.0, 2.0], n),
+        "f": rng.uniform(0.1, 0.2, n),
+        "sigma": np.full(n, 0.01),
+    }
+    table = _table(cols)
+    table.channel = rng.choice(np.array(["R", "G"]), n)
+    table.extra["capture_id"] = rng.integers(0, 3, n)
+    table.flags[rng.choice(n, 50, replace=False)] = int(Flags.SATURATED)
+    idx, group, counts = _duplicate_groups(table)
+    assert np.array_equal(idx, np.flatnonzero(table.flags == 0))
+    keys = np.stack(
+        [
+            *(getattr(table, k)[idx] for k in ("theta_i", "phi_i", "theta_o", "phi_o")),
+            (table.channel[idx] == "R").astype(float),
+            table.extra["capture_id"][idx].astype(float),
+        ],
+        axis=1,
+    )
+    _, ref, ref_counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    ref = ref.ravel()
+    # the same partition: each of our groups maps to exactly one of numpy's and back
+    pairs = np.unique(np.stack([group, ref], axis=1), axis=0)
+    assert pairs.shape[0] == counts.size == ref_counts.size
+    assert np.array_equal(np.sort(counts), np.sort(ref_counts))
+    assert np.array_equal(counts[group], ref_counts[ref])
+    assert (counts > 1).any() and (counts == 1).any()  # the draw has repeats and singles

@@ -343,3 +343,25 @@ def test_matched_model_is_not_widened() -> None:
     assert max(factors.values()) < 1.15, factors
     verdict = next(v for v in fit.verdicts if v["name"] == "discrepancy")
     assert verdict["status"] == "ok", verdict
+
+
+def test_region_index_in_blocks_is_the_direct_binning() -> None:
+    """region_index works in blocks of rows (bounded temporaries); across a block boundary,
+    and for (k, n, 3) input, it equals the θ_h, θ_d bands read directly off the half/difference
+    angles of the whole set (fitting.rusinkiewicz), bin edges from the module's constants."""
+    from fitting.directions import uniform_hemisphere
+    from fitting.mismatch import _REGION_BLOCK, REGION_THETA_D, REGION_THETA_H
+    from fitting.rusinkiewicz import to_half_diff
+
+    rng = np.random.default_rng(4)
+    n = _REGION_BLOCK + 777  # two blocks, the second partial
+    wi, wo = uniform_hemisphere(n, rng), uniform_hemisphere(n, rng)
+    th, td, _ = to_half_diff(wi, wo)
+    h_band = np.searchsorted(REGION_THETA_H[1:-1], th, side="right")
+    d_band = np.searchsorted(REGION_THETA_D[1:-1], td, side="right")
+    direct = 3 * h_band + d_band
+    assert np.array_equal(region_index(wi, wo), direct)
+    assert np.bincount(direct, minlength=9).min() > 0  # every region is exercised
+    half = n // 2 * 2
+    stacked = region_index(wi[:half].reshape(2, -1, 3), wo[:half].reshape(2, -1, 3))
+    assert np.array_equal(stacked.ravel(), direct[:half])

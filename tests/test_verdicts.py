@@ -130,18 +130,20 @@ def test_chi2_spread_thresholds() -> None:
 
 def test_regions_name_where_the_residuals_are_too_large() -> None:
     from fitting.directions import uniform_hemisphere
+    from fitting.mismatch import region_index
     from fitting.rusinkiewicz import to_half_diff
     from fitting.verdicts import regions_verdict
 
     rng = np.random.default_rng(0)
     wi, wo = uniform_hemisphere(3000, rng), uniform_hemisphere(3000, rng)
+    reg = region_index(wi, wo)
     r = rng.standard_normal(3000)  # unit residuals everywhere: a model that fits
-    assert regions_verdict(wi, wo, r)["status"] == "ok"
+    assert regions_verdict(reg, r)["status"] == "ok"
     # The model undershoots at grazing θ_d by 2 σ: the global χ²/dof rises only to ≈ 1.3
     # (a sixth of the samples), but that region's χ²/n ≈ 5 is far outside its spread.
     _, td, _ = to_half_diff(wi, wo)
     r[td > np.radians(60)] += 2.0
-    v = regions_verdict(wi, wo, r)
+    v = regions_verdict(reg, r)
     assert v["status"] == "fail" and "θd 60–90°" in v["reason"], v
     assert "model mostly below the data" in v["reason"]
 
