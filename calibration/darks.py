@@ -128,7 +128,7 @@ def master_dark(frames: Iterable[np.ndarray], exposure_s: float) -> MasterDark:
     return MasterDark(float(exposure_s), mean, var, n)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _welford_update(mean, m2, x, n):  # noqa: ANN001
     """One frame into the running mean and sum of squared deviations, in place, in one pass:
     δ = x − mean; mean += δ/n; m2 += δ·(x − mean) (numpy's whole-array steps, same rounding)."""

@@ -67,7 +67,7 @@ class FlatField:
         return out, var / self.gain**2 + out**2 * self.rel_var
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _add_unsaturated(total, x, clip_dn):  # noqa: ANN001
     """total += x (in float64) in one pass; True if any value of x is at or above `clip_dn`."""
     saturated = False

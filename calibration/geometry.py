@@ -173,7 +173,7 @@ def pixel_geometry(
     return geo
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _ray_row(r, rays, out):  # noqa: ANN001
     """Row r of the pixels: the ray d = R·(x, y, 1) from the camera cut with z = 0 at
     p = C + t·d (t = −C_z/d_z, none when d_z ≥ 0), ω_i = (L − p)/|L − p|, ω_o = (C − p)/|C − p|,
@@ -205,14 +205,14 @@ def _ray_row(r, rays, out):  # noqa: ANN001
         dist[r, c] = rl
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _rays_par(rays, out):  # noqa: ANN001
     """`_ray_row` for every row, rows in parallel (each pixel's arithmetic is its own)."""
     for r in numba.prange(rays[0].shape[0]):
         _ray_row(r, rays, out)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _rays_ser(rays, out):  # noqa: ANN001
     for r in range(rays[0].shape[0]):
         _ray_row(r, rays, out)

@@ -253,7 +253,7 @@ def merge_frames_local(
 # short chain of dependent divisions, which scalar code waits on (≈ 110 ns a photosite).
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _row_electrons(dn, off, gain, white, y, s, ok):  # noqa: ANN001
     """Row y of every bracket in electrons into s[i], and ok[i] = 1.0 where not saturated
     (DN < white − ½), 0.0 where saturated."""
@@ -265,7 +265,7 @@ def _row_electrons(dn, off, gain, white, y, s, ok):  # noqa: ANN001
             oki[x] = 1.0 if v < white - 0.5 else 0.0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _row_weighted(s, ok, t, var_read, ref, scratch, est, var):  # noqa: ANN001
     """Per value x of a row: est = Σ wᵢ sᵢ/tᵢ / Σ wᵢ and var = 1/Σ wᵢ over kept brackets
     (ok = 1), wᵢ = tᵢ²/Dᵢ, Dᵢ = max(ref, 0)·tᵢ + σ²ᵢ — as one fraction: with P = Πⱼ Dⱼ and
@@ -301,7 +301,7 @@ def _row_weighted(s, ok, t, var_read, ref, scratch, est, var):  # noqa: ANN001
         var[x] = prod[x] * inv if den[x] > 0 else np.inf
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp):  # noqa: ANN001
     """`merge_brackets` with own-value weights along a row: Φ starts at the longest kept
     bracket's sᵢ/tᵢ, then two weighted iterations; where no bracket is kept (sat = 1) Φ is the
@@ -323,12 +323,12 @@ def _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp):  # noq
             phi[x] = phi[x] if sat[x] != 0.0 else est[x]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _row_scratch(nb, n):  # noqa: ANN001, ANN202
     return (np.empty((nb, n)), np.empty(n), np.empty(n), np.empty(n), np.empty(n))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _first_row(y, frames, state):  # noqa: ANN001
     """Step 1 for row y: every value's own-value merge, and whether it may serve as a
     neighbour (valid and not all saturated), into the padded `state` arrays."""
@@ -350,7 +350,7 @@ def _first_row(y, frames, state):  # noqa: ANN001
         fu[x + sx] = phi[x] if u != 0.0 else 0.0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _final_row(y, frames, field, state, out):  # noqa: ANN001
     """Step 2 for row y: the neighbours' mean, the brackets near the clip dropped by it, and
     the merge weighted by it (or by the value's own merge where it has no usable neighbour),
@@ -414,7 +414,7 @@ def _final_row(y, frames, field, state, out):  # noqa: ANN001
         all_sat[y, x] = none
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _merge_state(frames):  # noqa: ANN001, ANN202
     """The first merge (H, W·C), and the first merge where usable (0 elsewhere) and the usable
     mask, padded by one neighbour step on every side so that the neighbour sums need no
@@ -425,7 +425,7 @@ def _merge_state(frames):  # noqa: ANN001, ANN202
     return np.empty((h, n)), np.zeros(pad), np.zeros(pad)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _merge_par(frames, field, out):  # noqa: ANN001
     """Both steps of merge_frames_local on rows of values (B, H, W·C), rows in parallel: each
     value's arithmetic is its own, so the result is the serial twin's bit for bit.
@@ -438,7 +438,7 @@ def _merge_par(frames, field, out):  # noqa: ANN001
         _final_row(y, frames, field, state, out)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _merge_ser(frames, field, out):  # noqa: ANN001
     """`_merge_par` on one thread (small frames, or cores busy: fitting.kernels.dispatch)."""
     state = _merge_state(frames)

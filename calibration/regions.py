@@ -62,7 +62,7 @@ def region_means(
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _sum_regions(rows, cols, b, pixels, where, scale, intensity, out):  # noqa: ANN001
     flux, var, sat, off, wi, wo = pixels
     dist, point = where

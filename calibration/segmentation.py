@@ -75,7 +75,7 @@ def polygon_mask(shape: tuple[int, int], corners_px: np.ndarray) -> np.ndarray:
     return inside
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _bilinear(img, u, v):  # noqa: ANN001, ANN202
     """`img` at (u, v) = (column, row), bilinear, the edge values beyond the image (as
     scipy.ndimage.map_coordinates(order=1, mode="nearest"): tests/test_segmentation.py)."""
@@ -90,7 +90,7 @@ def _bilinear(img, u, v):  # noqa: ANN001, ANN202
     return top * (1.0 - fv) + bottom * fv
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _steps_across(ell, var_ell, p_out, p_in):  # noqa: ANN001, ANN202
     """ℓ(p_out) − ℓ(p_in) and σ²_ℓ(p_out) + σ²_ℓ(p_in) at every (offset, position) of a side
     (p_* of shape (D, T, 2), (u, v) last): the four bilinear samples in one pass."""

@@ -6,6 +6,11 @@ ahead + 1 results exist at once, so memory stays that of a few items. One ahead 
 with much work per item (a pose's reduction keeps the other core busy); two suit a caller that
 only accumulates (master darks and flats, which wait on the decoder). An exception in fn is
 raised where its item's result is taken, in order, as a plain loop would raise it.
+
+The caller's compiled kernels release the GIL (numba ``nogil=True``; held, they stopped the
+decoding thread at its first Python step: 24× a 24 MP decode's time). ``fn`` itself should not
+launch parallel kernels: two launches at once are safe under numba's OpenMP or TBB layer but
+abort under its ``workqueue`` fallback. The decoders here (rawpy, OpenEXR, numpy) launch none.
 """
 
 from __future__ import annotations
