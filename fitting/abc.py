@@ -36,7 +36,7 @@ import numpy as np
 from numba import prange
 
 from fitting import kernels as _k
-from fitting.kernels import njit
+from fitting.kernels import njit  # its options (nogil…): numba's cache ignores them, see there
 from fitting.models import Model, Parameter, _above, _flat_parameters
 
 __all__ = ["AbcLobe", "abc_lobe", "EXPONENTS"]

@@ -42,7 +42,7 @@ from numba import prange
 from fitting import fresnel as _fresnel
 from fitting import kernels as _k
 from fitting import microfacet as _mf
-from fitting.kernels import njit
+from fitting.kernels import njit  # its options (nogil…): numba's cache ignores them, see there
 from fitting.models import (
     _FRESNEL,
     _FRESNEL_PARAMETERS,

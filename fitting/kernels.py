@@ -99,6 +99,10 @@ _prefer_512_bit_vectors()
 # (the kernels guard their divisions themselves).
 # nogil: a kernel releases the GIL while it runs, so a thread beside it (the calibration's frame
 # decoder, calibration.reduce) keeps working: held, a 24 MP RAW's decode took 24× its time.
+# numba's on-disk cache is keyed by a kernel's source, not by these options: after changing them,
+# edit every module that imports this njit (or clear its __pycache__), or their old builds load
+# with the new flags reported (a fresh checkout has no cache; tests/test_kernels_release_the_gil.py
+# checks the flags only: a timing check would flake on a loaded machine).
 njit = functools.partial(numba.njit, fastmath=False, error_model="numpy", nogil=True)
 
 DIST_BECKMANN, DIST_GGX = 0, 1

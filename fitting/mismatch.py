@@ -103,7 +103,7 @@ def region_index(wi, wo) -> np.ndarray:
         ih = np.clip(np.digitize(th, REGION_THETA_H) - 1, 0, REGION_THETA_H.size - 2)
         idd = np.clip(np.digitize(td, REGION_THETA_D) - 1, 0, REGION_THETA_D.size - 2)
         flat[sl] = ih * (REGION_THETA_D.size - 1) + idd
-    return out
+    return out if out.ndim else out[()]  # one pair: a scalar, as numpy's own functions give
 
 
 def region_label(k: int) -> str:

@@ -300,3 +300,11 @@ def test_duplicate_groups_are_the_partition_of_equal_keys() -> None:
     assert np.array_equal(np.sort(counts), np.sort(ref_counts))
     assert np.array_equal(counts[group], ref_counts[ref])
     assert (counts > 1).any() and (counts == 1).any()  # the draw has repeats and singles
+    # no row flagged (the columns are used without a copy), and an angle of −0.0 is 0.0
+    table.flags[:] = 0
+    table.phi_i[:2] = [0.0, -0.0]
+    for k in ("theta_i", "theta_o", "phi_o"):
+        getattr(table, k)[1] = getattr(table, k)[0]
+    table.channel[1], table.extra["capture_id"][1] = table.channel[0], table.extra["capture_id"][0]
+    idx, group, counts = _duplicate_groups(table)
+    assert idx.size == n and group[0] == group[1] and counts[group[0]] >= 2

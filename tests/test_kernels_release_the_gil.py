@@ -5,7 +5,8 @@ current one (calibration.reduce, plumbing.prefetch). A kernel that holds the GIL
 thread at its first Python step: measured on a 24 MP DNG, its decode took 24× its time beside
 a GIL-holding kernel and 0.7× beside the same kernel with ``nogil``. The check is on the
 kernels' compile options, not a timing, so it cannot flake on a loaded machine; it fails for
-any kernel added without the flag.
+any kernel added without the flag. (numba's disk cache is keyed by source, not options: a build
+cached before a flag changed loads with the new flag reported; see fitting.kernels.njit.)
 """
 
 from __future__ import annotations
