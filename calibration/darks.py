@@ -158,13 +158,12 @@ class DarkLibrary:
     def stacked(self, exposures_s: list[float]) -> np.ndarray | None:
         """The masters of `exposures_s`, in that order, as one (B, …) view of `stack` when they
         are consecutive in it (brackets recorded shortest first, as plans do); else None."""
-        if self.stack is None:
+        if self.stack is None or not exposures_s:
             return None
-        order = sorted(self.masters)
+        order = sorted(self.masters)  # the stack's order
         try:
-            idx = [order.index(next(t for t in order if abs(t - e) <= 1e-6 * max(t, e)))
-                   for e in exposures_s]  # fmt: skip
-        except StopIteration:
+            idx = [order.index(self.for_exposure(e).exposure_s) for e in exposures_s]
+        except (CalibrationFrameError, ValueError):
             return None
         if idx != list(range(idx[0], idx[0] + len(idx))):
             return None

@@ -11,11 +11,29 @@ import numpy as np
 import pytest
 
 from acquisition.store import RunStore
-from calibration.planes import block_all, block_any, block_mean, pose_planes
+from calibration.planes import block_all, pose_planes
 from calibration.radiometry import surface_irradiance
 from calibration.reduce import ReduceOptions, _captures_by_pose, _decode_pose, _run_calibration
 from calibration.regions import region_means
 from tests._small_runs import small_run
+
+
+def _block_views(a: np.ndarray, b: int) -> list[np.ndarray]:
+    """The b² strided views whose element (r, c) is element (i, j) of block (r, c), in the
+    order the reduction summed them (row by row within a block)."""
+    h, w = a.shape[0] // b * b, a.shape[1] // b * b
+    return [a[i:h:b, j:w:b] for i in range(b) for j in range(b)]
+
+
+def block_mean(a: np.ndarray, b: int) -> np.ndarray:
+    total = _block_views(a, b)[0].astype(np.float64)
+    for v in _block_views(a, b)[1:]:
+        total += v
+    return total / (b * b)
+
+
+def block_any(a: np.ndarray, b: int) -> np.ndarray:
+    return np.logical_or.reduce(_block_views(a, b))
 
 
 @pytest.fixture(scope="module")
