@@ -273,6 +273,9 @@ def _row_weighted(s, ok, t, var_read, ref, scratch, est, var):  # noqa: ANN001
     division instead of 2B + 1. Dᵢ ≤ ~10⁶ and B ≤ ~10 keep the products far inside float64's
     range. (NaN, ∞) where no bracket is kept."""
     nb, n = s.shape
+    if nb <= 3:
+        _row_weighted_fused(s, ok, t, var_read, ref, est, var)
+        return
     big_d, others, num, den, prod = scratch
     for i in range(nb):
         di, oki = big_d[i], ok[i]
@@ -302,6 +305,35 @@ def _row_weighted(s, ok, t, var_read, ref, scratch, est, var):  # noqa: ANN001
 
 
 @numba.njit(cache=True, nogil=True)
+def _row_weighted_fused(s, ok, t, var_read, ref, est, var):  # noqa: ANN001
+    """`_row_weighted` for B ≤ 3 brackets in one pass over the row (the general form makes
+    ~17 passes of one operation each; this one keeps a value's terms in registers), with the
+    same operations in the same order, so bit for bit the same: a missing bracket enters as a
+    dropped one (ok = 0, D = 1, s = 0), whose factor 1 and term +0 change nothing."""
+    nb, n = s.shape
+    pad = np.zeros(n)
+    s0, ok0 = s[0], ok[0]
+    s1, ok1 = (s[1], ok[1]) if nb > 1 else (pad, pad)
+    s2, ok2 = (s[2], ok[2]) if nb > 2 else (pad, pad)
+    t0, t1, t2 = t[0], t[1] if nb > 1 else 1.0, t[2] if nb > 2 else 1.0
+    v0, v1, v2 = var_read[0], var_read[1] if nb > 1 else 1.0, var_read[2] if nb > 2 else 1.0
+    for x in range(n):
+        r = max(ref[x], 0.0)
+        d0 = r * t0 + v0 if ok0[x] != 0.0 else 1.0
+        d1 = r * t1 + v1 if ok1[x] != 0.0 else 1.0
+        d2 = r * t2 + v2 if ok2[x] != 0.0 else 1.0
+        o0 = ok0[x] * d1 * d2
+        o1 = ok1[x] * d0 * d2
+        o2 = ok2[x] * d0 * d1
+        num = ((0.0 + t0 * s0[x] * o0) + t1 * s1[x] * o1) + t2 * s2[x] * o2
+        den = ((0.0 + t0 * t0 * o0) + t1 * t1 * o1) + t2 * t2 * o2
+        prod = 1.0 * d0 * d1 * d2
+        inv = 1.0 / den if den > 0 else np.nan
+        est[x] = num * inv
+        var[x] = prod * inv if den > 0 else np.inf
+
+
+@numba.njit(cache=True, nogil=True)
 def _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp):  # noqa: ANN001
     """`merge_brackets` with own-value weights along a row: Φ starts at the longest kept
     bracket's sᵢ/tᵢ, then two weighted iterations; where no bracket is kept (sat = 1) Φ is the
@@ -326,6 +358,30 @@ def _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp):  # noq
 @numba.njit(cache=True, nogil=True)
 def _row_scratch(nb, n):  # noqa: ANN001, ANN202
     return (np.empty((nb, n)), np.empty(n), np.empty(n), np.empty(n), np.empty(n))
+
+
+@numba.njit(cache=True, nogil=True)
+def _own_merge_where(s, ok, t, var_read, shortest, cnt, dropped, n_own, ref):  # noqa: ANN001
+    """ref[x] = the own-value merge of the kept brackets for the `n_own` values x with no
+    usable neighbour (cnt = 0) and a bracket dropped (dropped ≠ 0), gathered into rows of their
+    own: every value's merge is its own arithmetic, so it is the whole row's bit for bit."""
+    nb, n = s.shape
+    at = np.empty(n_own, np.int64)
+    k = 0
+    for x in range(n):
+        if cnt[x] == 0.0 and dropped[x] != 0.0:
+            at[k] = x
+            k += 1
+    s_own, ok_own = np.empty((nb, n_own)), np.empty((nb, n_own))
+    for i in range(nb):
+        for k in range(n_own):
+            s_own[i, k] = s[i, at[k]]
+            ok_own[i, k] = ok[i, at[k]]
+    phi, sat = np.empty(n_own), np.empty(n_own)
+    scratch, tmp = _row_scratch(nb, n_own), (np.empty(n_own), np.empty(n_own))
+    _row_own_merge(s_own, ok_own, t, var_read, shortest, scratch, phi, sat, tmp)
+    for k in range(n_own):
+        ref[at[k]] = phi[k]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -363,13 +419,12 @@ def _final_row(y, frames, field, state, out):  # noqa: ANN001
     var_read = np.maximum(read_e**2, 1e-12)
     shortest = np.argmin(t)
     s, ok = np.empty((nb, n)), np.empty((nb, n))
-    tot, cnt, ref = np.empty(n), np.empty(n), np.empty(n)
-    phi, sat = np.empty(n), np.empty(n)
-    scratch, tmp = _row_scratch(nb, n), (np.empty(n), np.empty(n))
+    tot, cnt, ref, dropped = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     _row_electrons(dn, off, gain, white, y, s, ok)
     for x in range(n):
         tot[x] = 0.0
         cnt[x] = 0.0
+        dropped[x] = 0.0
     for dy in (-sy, 0, sy):
         fu, us = first_usable[y + sy + dy], usable[y + sy + dy]
         for dx in (-sx, 0, sx):
@@ -378,9 +433,7 @@ def _final_row(y, frames, field, state, out):  # noqa: ANN001
             for x in range(n):
                 tot[x] += fu[x + sx + dx]
                 cnt[x] += us[x + sx + dx]
-    alone = False
     for x in range(n):
-        alone |= cnt[x] == 0.0
         tot[x] = tot[x] / cnt[x] if cnt[x] > 0 else np.nan  # the neighbours' mean
         ref[x] = max(tot[x] if cnt[x] > 0 else first[y, x], 0.0)
     for i in range(nb):
@@ -388,14 +441,21 @@ def _final_row(y, frames, field, state, out):  # noqa: ANN001
         for x in range(n):
             expected = ref[x] * t[i]
             near = expected + margin * np.sqrt(expected + read_e[i] ** 2)
-            oki[x] = oki[x] if near < (white - offi[x]) * gain else 0.0
-    if alone:  # weights from the value's own merge of the kept brackets where no neighbour
-        _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp)
-        for x in range(n):
-            ref[x] = tot[x] if cnt[x] > 0 else phi[x]
-    else:
-        for x in range(n):
-            ref[x] = tot[x]
+            keep = near < (white - offi[x]) * gain
+            dropped[x] += 0.0 if keep else oki[x]
+            oki[x] = oki[x] if keep else 0.0
+    # Where no neighbour is usable the weights come from the value's own merge of the kept
+    # brackets. Step 1 stored that merge (`first`) for the brackets kept then; it is recomputed
+    # only for the few values the clip test above dropped a bracket of (the off-sample border
+    # is most of a row's values and seldom near the clip: recomputing it all was 2 of the
+    # step's 3 weighted passes).
+    n_own = 0
+    for x in range(n):
+        ref[x] = tot[x] if cnt[x] > 0 else first[y, x]
+        n_own += 1 if cnt[x] == 0.0 and dropped[x] != 0.0 else 0
+    if n_own:
+        _own_merge_where(s, ok, t, var_read, shortest, cnt, dropped, n_own, ref)
+    scratch, tmp = _row_scratch(nb, n), (np.empty(n), np.empty(n))
     est, v = tmp
     _row_weighted(s, ok, t, var_read, ref, scratch, est, v)
     for x in range(n):

@@ -2,7 +2,8 @@
 the documented numpy merge (`merge_brackets_local`, whose bias and noise tests are
 tests/test_hdr_bias.py) from the raw frames, on frames that exercise every branch: a Bayer mosaic
 and an RGB image, per-pixel darks, a bright patch that saturates the long brackets and one that
-saturates them all, pixels with no valid neighbour, and an on-sample mask.
+saturates them all, pixels with no valid neighbour (some near the clip, so that the clip test drops a bracket of
+theirs), and an on-sample mask.
 
 Tolerance: the kernel computes the same quantities with a different rounding order — the
 neighbours' sum (scipy's running 3-tap sums × 9 − self in numpy, a direct sum of ≤ 8 values in
@@ -26,7 +27,7 @@ EXPOSURES_S = [0.001, 0.004, 0.016]
 READ_E = np.array([3.1, 3.3, 3.9])  # grows with exposure, as a dark's temporal noise does
 
 
-def _frames(shape, rng):
+def _frames(shape, rng, exposures_s=EXPOSURES_S, read_e=READ_E):
     """Raw brackets (B, *shape) of a flux field with a bright and a blinding patch, and their
     per-pixel darks."""
     h, w = shape[:2]
@@ -34,31 +35,50 @@ def _frames(shape, rng):
     flux_e_s = 2e4 * (1.0 + 0.5 * np.sin(xx / 7.0) * np.cos(yy / 5.0))
     flux_e_s[10:20, 10:24] = 5e5  # saturates the 16 ms and 4 ms brackets
     flux_e_s[30:36, 40:50] = 5e7  # saturates all three
+    # Off the sample's mask (the valid disc below) and near the 16 ms bracket's clip
+    # (7840 e of 8062): values with no usable neighbour whose clip test drops that bracket
+    flux_e_s[0:6, 0:8] = 4.9e5
     if len(shape) == 3:
         flux_e_s = flux_e_s[..., None] * np.array([0.7, 1.0, 1.3])
-    dark_dn = 64.0 + rng.normal(0.0, 2.0, (len(EXPOSURES_S), *shape))
+    dark_dn = 64.0 + rng.normal(0.0, 2.0, (len(exposures_s), *shape))
     dn = []
-    for i, t in enumerate(EXPOSURES_S):
-        electrons = rng.poisson(flux_e_s * t) + rng.normal(0.0, READ_E[i], shape)
+    for i, t in enumerate(exposures_s):
+        electrons = rng.poisson(flux_e_s * t) + rng.normal(0.0, read_e[i], shape)
         dn.append(np.clip(np.round(dark_dn[i] + electrons / GAIN_E_PER_DN), 0, WHITE_DN))
     return np.array(dn, dtype=np.float32), dark_dn
 
 
-@pytest.mark.parametrize("shape, cfa", [((48, 64), True), ((40, 56, 3), False)])
-def test_fused_merge_is_the_documented_merge(shape, cfa) -> None:
+# Three brackets (the camera-scale benchmark's), two (the plans' default) and one take the
+# kernel's one-pass weighted mean; four take its general form.
+BRACKET_SETS = {
+    3: (EXPOSURES_S, READ_E),
+    2: ([0.004, 0.016], np.array([3.3, 3.9])),
+    1: ([0.016], np.array([3.9])),
+    4: ([0.001, 0.004, 0.016, 0.03], np.array([3.1, 3.3, 3.9, 4.4])),
+}
+
+
+@pytest.mark.parametrize(
+    "shape, cfa, n_brackets",
+    [((48, 64), True, 3), ((40, 56, 3), False, 3), ((48, 64), True, 2), ((48, 64), True, 1)]
+    + [((48, 64), True, 4), ((40, 56, 3), False, 4)],
+)
+def test_fused_merge_is_the_documented_merge(shape, cfa, n_brackets) -> None:
+    exposures_s, read_e = BRACKET_SETS[n_brackets]
     rng = np.random.default_rng(7)
-    dn, dark_dn = _frames(shape, rng)
+    dn, dark_dn = _frames(shape, rng, exposures_s, read_e)
     h, w = shape[:2]
     yy, xx = np.mgrid[0:h, 0:w]
     valid = (yy - h / 2) ** 2 + (xx - w / 2) ** 2 < (0.45 * w) ** 2
     valid[5, 5] = True  # an isolated valid pixel: no valid neighbour (the own-merge fallback)
-    electrons = [(dn[i].astype(np.float64) - dark_dn[i]) * GAIN_E_PER_DN for i in range(3)]
-    saturated = [dn[i] >= WHITE_DN - 0.5 for i in range(3)]
-    clips = [(WHITE_DN - dark_dn[i]) * GAIN_E_PER_DN for i in range(3)]
+    b = len(exposures_s)
+    electrons = [(dn[i].astype(np.float64) - dark_dn[i]) * GAIN_E_PER_DN for i in range(b)]
+    saturated = [dn[i] >= WHITE_DN - 0.5 for i in range(b)]
+    clips = [(WHITE_DN - dark_dn[i]) * GAIN_E_PER_DN for i in range(b)]
     want = merge_brackets_local(
-        electrons, EXPOSURES_S, saturated, READ_E, clips, valid=valid, cfa=cfa
+        electrons, exposures_s, saturated, read_e, clips, valid=valid, cfa=cfa
     )
-    brackets = RawBrackets(dn, dark_dn, EXPOSURES_S, READ_E, GAIN_E_PER_DN, WHITE_DN)
+    brackets = RawBrackets(dn, dark_dn, exposures_s, read_e, GAIN_E_PER_DN, WHITE_DN)
     got = merge_frames_local(brackets, valid=valid, cfa=cfa)
     assert want[2].any() and not want[2].all()  # the blinding patch is all-saturated
     np.testing.assert_array_equal(got[2], want[2])
