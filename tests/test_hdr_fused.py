@@ -2,8 +2,8 @@
 the documented numpy merge (`merge_brackets_local`, whose bias and noise tests are
 tests/test_hdr_bias.py) from the raw frames, on frames that exercise every branch: a Bayer mosaic
 and an RGB image, per-pixel darks, a bright patch that saturates the long brackets and one that
-saturates them all, pixels with no valid neighbour (some near the clip, so that the clip test drops a bracket of
-theirs), and an on-sample mask.
+saturates them all, pixels with no valid neighbour (some near the clip, so that the clip test
+drops a bracket of theirs), an on-sample mask, and 1 to 4 brackets.
 
 Tolerance: the kernel computes the same quantities with a different rounding order — the
 neighbours' sum (scipy's running 3-tap sums × 9 − self in numpy, a direct sum of ≤ 8 values in
