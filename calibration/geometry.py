@@ -192,13 +192,18 @@ def _ray_row(r, rays, out):  # noqa: ANN001
         p0 = cam[0] + t * d0
         p1 = cam[1] + t * d1
         l0, l1, l2 = light[0] - p0, light[1] - p1, light[2]
+        if mask_only:
+            # ω_i,z > 0 and ω_o,z > 0 are L_z > 0 and C_z > 0 where p is finite (|L − p| and
+            # |C − p| are then finite and > 0): the same mask without two roots and divisions
+            on[r, c] = (
+                np.isfinite(t) and abs(p0) < half and abs(p1) < half and l2 > 0 and cam[2] > 0
+            )
+            continue
         rl = np.sqrt(l0 * l0 + l1 * l1 + l2 * l2)
         v0, v1, v2 = cam[0] - p0, cam[1] - p1, cam[2]
         rv = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
         wiz, woz = l2 / rl, v2 / rv
         on[r, c] = np.isfinite(t) and abs(p0) < half and abs(p1) < half and wiz > 0 and woz > 0
-        if mask_only:
-            continue
         point[r, c, 0], point[r, c, 1], point[r, c, 2] = p0, p1, 0.0
         wi[r, c, 0], wi[r, c, 1], wi[r, c, 2] = l0 / rl, l1 / rl, wiz
         wo[r, c, 0], wo[r, c, 1], wo[r, c, 2] = v0 / rv, v1 / rv, woz

@@ -87,3 +87,17 @@ def test_a_window_gives_the_whole_frames_values() -> None:
         intr, CAM_M, LIGHT_M, SIZE_M, grid=PixelGrid(2, 0.5), rotation=rot, mask_only=True
     )
     np.testing.assert_array_equal(mask.on_sample, whole.on_sample)
+
+
+@pytest.mark.parametrize("light_z_m", [0.35, 0.0, -0.05])
+def test_the_mask_alone_is_the_whole_geometrys_mask(light_z_m) -> None:
+    """`mask_only` decides "above the surface" from the light's and camera's heights instead
+    of the normalised directions: the same pixels, whether the lamp is above, level with or
+    below the sample's plane (then no pixel is lit)."""
+    intr = _intrinsics(True)
+    rot = look_at_rotation(CAM_M)
+    light = np.array([LIGHT_M[0], LIGHT_M[1], light_z_m])
+    whole = pixel_geometry(intr, CAM_M, light, SIZE_M, rotation=rot)
+    mask = pixel_geometry(intr, CAM_M, light, SIZE_M, rotation=rot, mask_only=True)
+    assert whole.on_sample.any() == (light_z_m > 0)
+    np.testing.assert_array_equal(mask.on_sample, whole.on_sample)
