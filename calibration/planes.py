@@ -363,12 +363,21 @@ def _segment(cal: RunCalibration, fluxes, variances, sats, camera, size_m, step,
     corners_m = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]])
     uv = _project(cal.intrinsics, cam_pos, corners_m, rot) - np.asarray(origin, dtype=np.float64)
     corners = (uv - (step - 1) / 2.0) / step
-    image = np.sum(fluxes, axis=0)
-    noise = np.sqrt(np.sum(variances, axis=0))
+    image = _total(fluxes)
+    noise = np.sqrt(_total(variances))
     # A pixel saturated in every bracket is bright whatever its merged value says.
-    sat_any = np.any(sats, axis=0)
+    sat_any = _total(sats)
     finite = np.isfinite(image) & ~sat_any
     image = np.where(sat_any, image[finite].max() if finite.any() else 0.0, image)
     if not np.all(np.isfinite(corners)):
         return None
     return segment_sample(image, corners, noise_sd=noise, band_px=cal.options.segment_band_px).mask
+
+
+def _total(planes):
+    """The planes' element-wise sum (logical or for masks) in order, accumulated in place: the
+    value np.sum(planes, axis=0) gives, without stacking the strided colour planes first."""
+    total = np.array(planes[0], copy=True)
+    for plane in planes[1:]:
+        total += plane
+    return total

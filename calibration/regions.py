@@ -73,9 +73,9 @@ def _sum_regions(rows, cols, b, pixels, where, scale, intensity, out):  # noqa: 
         v_sum = 0.0
         sat_any = False
         off_any = False
-        wi_s = np.zeros(3)
-        wo_s = np.zeros(3)
-        p_s = np.zeros(3)
+        # the direction sums as scalars: three np.zeros(3) a region were heap allocations,
+        # most of this kernel's time
+        wi0 = wi1 = wi2 = wo0 = wo1 = wo2 = p0 = p1 = p2 = 0.0
         for i in range(b):
             y = rows[k] * b + i
             for j in range(b):
@@ -88,15 +88,19 @@ def _sum_regions(rows, cols, b, pixels, where, scale, intensity, out):  # noqa: 
                 v_sum += var[y, x] * (r * r)
                 sat_any |= sat[y, x]
                 off_any |= off[y, x]
-                for a in range(3):
-                    wi_s[a] += wi[y, x, a]
-                    wo_s[a] += wo[y, x, a]
-                    p_s[a] += point[y, x, a]
+                wi0 += wi[y, x, 0]
+                wi1 += wi[y, x, 1]
+                wi2 += wi[y, x, 2]
+                wo0 += wo[y, x, 0]
+                wo1 += wo[y, x, 1]
+                wo2 += wo[y, x, 2]
+                p0 += point[y, x, 0]
+                p1 += point[y, x, 1]
+                p2 += point[y, x, 2]
         f_mean[k] = f_sum / n_px
         var_mean[k] = v_sum / n_px
         saturated[k] = sat_any
         masked[k] = off_any
-        for a in range(3):
-            wi_mean[k, a] = wi_s[a] / n_px
-            wo_mean[k, a] = wo_s[a] / n_px
-            p_mean[k, a] = p_s[a] / n_px
+        wi_mean[k, 0], wi_mean[k, 1], wi_mean[k, 2] = wi0 / n_px, wi1 / n_px, wi2 / n_px
+        wo_mean[k, 0], wo_mean[k, 1], wo_mean[k, 2] = wo0 / n_px, wo1 / n_px, wo2 / n_px
+        p_mean[k, 0], p_mean[k, 1], p_mean[k, 2] = p0 / n_px, p1 / n_px, p2 / n_px

@@ -63,16 +63,26 @@ def _ccw(corners: np.ndarray) -> np.ndarray:
 def polygon_mask(shape: tuple[int, int], corners_px: np.ndarray) -> np.ndarray:
     """Pixels (H, W) whose centre (integer u, v) lies inside the convex polygon ``corners_px``."""
     pts = _ccw(np.asarray(corners_px, dtype=np.float64))
-    # A column of v and a row of u, broadcast: no (H, W) coordinate arrays to build.
-    vv = np.arange(shape[0], dtype=np.float64)[:, None]
-    uu = np.arange(shape[1], dtype=np.float64)[None, :]
-    inside = np.ones(shape, bool)
-    n = len(pts)
-    for k in range(n):
-        a, b = pts[k], pts[(k + 1) % n]
-        cross = (b[0] - a[0]) * (vv - a[1]) - (b[1] - a[1]) * (uu - a[0])
-        inside &= cross >= 0
+    inside = np.empty(shape, bool)
+    _inside_convex(pts, inside)
     return inside
+
+
+@numba.njit(cache=True, nogil=True)
+def _inside_convex(pts, inside):  # noqa: ANN001
+    """inside[v, u] = (u, v) is on the inner side of every edge a→b of the counter-clockwise
+    polygon `pts`: (b − a) × (p − a) ≥ 0, one pixel at a time (no (H, W) temporaries)."""
+    n = pts.shape[0]
+    for v in range(inside.shape[0]):
+        fv = float(v)
+        for u in range(inside.shape[1]):
+            fu = float(u)
+            ok = True
+            for k in range(n):
+                a0, a1 = pts[k, 0], pts[k, 1]
+                b0, b1 = pts[(k + 1) % n, 0], pts[(k + 1) % n, 1]
+                ok &= (b0 - a0) * (fv - a1) - (b1 - a1) * (fu - a0) >= 0
+            inside[v, u] = ok
 
 
 @numba.njit(cache=True, nogil=True)

@@ -292,3 +292,24 @@ def test_the_edge_search_samples_the_image_as_scipy_does() -> None:
     np.testing.assert_allclose(
         var, sample(var_ell, p_out) + sample(var_ell, p_in), rtol=0, atol=8 * eps * var_ell.max()
     )
+
+
+def test_polygon_mask_is_the_pixel_centres_inside_the_polygon() -> None:
+    """`polygon_mask` against matplotlib's point-in-polygon test of every pixel centre, for
+    random convex quadrilaterals given in any corner order (non-integer corners: no centre lies
+    on an edge, where the two tests may differ by convention)."""
+    rng = np.random.default_rng(3)
+    shape = (37, 53)
+    for _ in range(20):
+        centre = rng.uniform([10.0, 8.0], [43.0, 29.0])
+        angles = np.sort(rng.uniform(0.0, 2 * np.pi, 4))
+        # points on an ellipse: a convex quadrilateral, as a square's image is
+        on_circle = np.column_stack([np.cos(angles), np.sin(angles)])
+        corners = centre + on_circle @ rng.uniform(-12.0, 12.0, (2, 2))
+        corners = corners[rng.permutation(4)]
+        vv, uu = np.mgrid[0 : shape[0], 0 : shape[1]]
+        ordered = corners[np.argsort(np.arctan2(*(corners - corners.mean(0)).T[::-1]))]
+        want = PolygonPath(ordered).contains_points(np.column_stack([uu.ravel(), vv.ravel()]))
+        got = polygon_mask(shape, corners)
+        assert got.any() and not got.all()
+        np.testing.assert_array_equal(got, want.reshape(shape))
