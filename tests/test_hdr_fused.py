@@ -105,9 +105,12 @@ def test_threads_do_not_change_the_merge_or_the_geometry() -> None:
     cam = np.array([0.1, 0.05, 0.45])
 
     def run() -> tuple:
+        # a mosaic (neighbours 2 rows away) and a plain image (1 row): the threaded merge's
+        # bands of rows recompute step 1 for that many rows beyond their ends
         merged = merge_frames_local(brackets, valid=valid, cfa=True)
+        plain = merge_frames_local(brackets, valid=valid, cfa=False)
         geo = pixel_geometry(intr, cam, np.array([-0.2, 0.0, 0.4]), 0.05)
-        return (*merged, geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
+        return (*merged, *plain, geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
 
     previous = set_threading("serial")
     try:
