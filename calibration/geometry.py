@@ -194,7 +194,8 @@ def _ray_row(r, rays, out):  # noqa: ANN001
         l0, l1, l2 = light[0] - p0, light[1] - p1, light[2]
         if mask_only:
             # ω_i,z > 0 and ω_o,z > 0 are L_z > 0 and C_z > 0 where p is finite (|L − p| and
-            # |C − p| are then finite and > 0): the same mask without two roots and divisions
+            # |C − p| are then finite and > 0, for lamp and camera at finite positions): the
+            # same mask without two roots and divisions
             on[r, c] = (
                 np.isfinite(t) and abs(p0) < half and abs(p1) < half and l2 > 0 and cam[2] > 0
             )

@@ -195,8 +195,9 @@ def merge_frames_local(
     margin_sigma: float = 5.0,
     flat: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`merge_brackets_local` from the raw frames in one compiled pass per step (the same
-    maths, without its whole-image float64 temporaries: about 20 of them per bracket).
+    """`merge_brackets_local` from the raw frames in one compiled pass over the rows, its two
+    steps interleaved (the same maths, without its whole-image float64 temporaries: about 20
+    of them per bracket).
 
     Electrons are (DN − offset)·gain, as calibration.planes.merge_pose forms them for
     `merge_brackets_local`; ``valid``, ``cfa`` and ``margin_sigma`` are its arguments.
@@ -272,10 +273,16 @@ def _row_weighted(s, ok, t, var_read, ref, scratch, est, var):  # noqa: ANN001
     Pᵢ = P/Dᵢ (products over kept j ≠ i), est = Σ tᵢ sᵢ Pᵢ / Σ tᵢ² Pᵢ, var = P / Σ tᵢ² Pᵢ: one
     division instead of 2B + 1. Dᵢ ≤ ~10⁶ and B ≤ ~10 keep the products far inside float64's
     range. (NaN, ∞) where no bracket is kept."""
-    nb, n = s.shape
-    if nb <= 3:
+    if s.shape[0] in (2, 3):
         _row_weighted_fused(s, ok, t, var_read, ref, est, var)
-        return
+    else:
+        _row_weighted_general(s, ok, t, var_read, ref, scratch, est, var)
+
+
+@numba.njit(cache=True, nogil=True)
+def _row_weighted_general(s, ok, t, var_read, ref, scratch, est, var):  # noqa: ANN001
+    """`_row_weighted` for any number of brackets, one operation per pass over the row."""
+    nb, n = s.shape
     big_d, others, num, den, prod = scratch
     for i in range(nb):
         di, oki = big_d[i], ok[i]
@@ -306,17 +313,27 @@ def _row_weighted(s, ok, t, var_read, ref, scratch, est, var):  # noqa: ANN001
 
 @numba.njit(cache=True, nogil=True)
 def _row_weighted_fused(s, ok, t, var_read, ref, est, var):  # noqa: ANN001
-    """`_row_weighted` for B ≤ 3 brackets in one pass over the row (the general form makes
+    """`_row_weighted` for 2 or 3 brackets in one pass over the row (the general form makes
     ~17 passes of one operation each; this one keeps a value's terms in registers), with the
-    same operations in the same order, so bit for bit the same: a missing bracket enters as a
-    dropped one (ok = 0, D = 1, s = 0), whose factor 1 and term +0 change nothing."""
-    nb, n = s.shape
-    pad = np.zeros(n)
-    s0, ok0 = s[0], ok[0]
-    s1, ok1 = (s[1], ok[1]) if nb > 1 else (pad, pad)
-    s2, ok2 = (s[2], ok[2]) if nb > 2 else (pad, pad)
-    t0, t1, t2 = t[0], t[1] if nb > 1 else 1.0, t[2] if nb > 2 else 1.0
-    v0, v1, v2 = var_read[0], var_read[1] if nb > 1 else 1.0, var_read[2] if nb > 2 else 1.0
+    same operations in the same order, so bit for bit the same."""
+    n = s.shape[1]
+    s0, s1, ok0, ok1 = s[0], s[1], ok[0], ok[1]
+    t0, t1, v0, v1 = t[0], t[1], var_read[0], var_read[1]
+    if s.shape[0] == 2:
+        for x in range(n):
+            r = max(ref[x], 0.0)
+            d0 = r * t0 + v0 if ok0[x] != 0.0 else 1.0
+            d1 = r * t1 + v1 if ok1[x] != 0.0 else 1.0
+            o0 = ok0[x] * d1
+            o1 = ok1[x] * d0
+            num = (0.0 + t0 * s0[x] * o0) + t1 * s1[x] * o1
+            den = (0.0 + t0 * t0 * o0) + t1 * t1 * o1
+            prod = 1.0 * d0 * d1
+            inv = 1.0 / den if den > 0 else np.nan
+            est[x] = num * inv
+            var[x] = prod * inv if den > 0 else np.inf
+        return
+    s2, ok2, t2, v2 = s[2], ok[2], t[2], var_read[2]
     for x in range(n):
         r = max(ref[x], 0.0)
         d0 = r * t0 + v0 if ok0[x] != 0.0 else 1.0
@@ -357,7 +374,9 @@ def _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp):  # noq
 
 @numba.njit(cache=True, nogil=True)
 def _row_scratch(nb, n):  # noqa: ANN001, ANN202
-    return (np.empty((nb, n)), np.empty(n), np.empty(n), np.empty(n), np.empty(n))
+    """The general weighted mean's buffers (empty for the fused one's 2 or 3 brackets)."""
+    m = 0 if nb in (2, 3) else n
+    return (np.empty((nb, m)), np.empty(m), np.empty(m), np.empty(m), np.empty(m))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -487,7 +506,7 @@ def _merge_band(frames, field, out, y0, y1):  # noqa: ANN001
     fu, us = np.zeros((rows, n + 2 * sx)), np.zeros((rows, n + 2 * sx))
     ring = sy + 1  # electrons of rows y − sy … y: step 2 of row y − sy needs them
     s_ring, ok_ring = np.empty((ring, nb, n)), np.empty((ring, nb, n))
-    for y in range(lo, hi + sy):
+    for y in range(lo, y1 + sy):
         if y < hi:
             k, r = y % ring, y - base
             _row_electrons(dn, off, gain, white, y, s_ring[k], ok_ring[k])

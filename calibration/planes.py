@@ -376,8 +376,10 @@ def _segment(cal: RunCalibration, fluxes, variances, sats, camera, size_m, step,
 
 def _total(planes):
     """The planes' element-wise sum (logical or for masks) in order, accumulated in place: the
-    value np.sum(planes, axis=0) gives, without stacking the strided colour planes first."""
-    total = np.array(planes[0], copy=True)
+    value np.sum(planes, axis=0) gives, without stacking the strided colour planes first (its
+    sum starts from +0, so −0 becomes +0: the `+ 0.0`)."""
+    first = planes[0]
+    total = first + 0.0 if first.dtype.kind == "f" else np.array(first, copy=True)
     for plane in planes[1:]:
         total += plane
     return total

@@ -89,14 +89,17 @@ def test_fused_merge_is_the_documented_merge(shape, cfa, n_brackets) -> None:
 
 
 def test_threads_do_not_change_the_merge_or_the_geometry() -> None:
-    """The parallel twins (rows on numba's threads) give the serial ones' results bit for bit:
+    """The parallel twins (bands of rows on numba's threads) give the serial ones' results bit
+    for bit:
     every value's arithmetic is its own, so only the speed may depend on the machine's load
     (the "auto" policy picks a twin by timing, fitting.kernels.set_threading)."""
     from calibration.geometry import Intrinsics, pixel_geometry
     from fitting.kernels import PARALLEL_MIN_WORK, set_threading
 
     rng = np.random.default_rng(11)
-    shape = (320, 256)  # 81 920 values ≥ PARALLEL_MIN_WORK: threads are allowed
+    # 84 480 values ≥ PARALLEL_MIN_WORK: threads are allowed; 330 rows are 5 whole bands of
+    # 64 rows (calibration.hdr._BAND_ROWS) and a partial one
+    shape = (330, 256)
     assert shape[0] * shape[1] >= PARALLEL_MIN_WORK
     dn, dark_dn = _frames(shape, rng)
     brackets = RawBrackets(dn, dark_dn, EXPOSURES_S, READ_E, GAIN_E_PER_DN, WHITE_DN)
@@ -141,3 +144,35 @@ def test_the_flat_divided_in_the_merge_is_the_flat_fields_own_division() -> None
     np.testing.assert_array_equal(got[0], want[0])
     np.testing.assert_array_equal(got[1], want[1])
     np.testing.assert_array_equal(got[2], plain[2])
+
+
+@pytest.mark.parametrize("n_brackets", [2, 3])
+def test_the_one_pass_weighted_mean_is_the_general_one_bit_for_bit(n_brackets) -> None:
+    """The merge's one-pass weighted mean (2 or 3 brackets) against its general form (any
+    number of brackets, one operation per pass) on the values a row can hold: brackets kept and
+    dropped in every combination, references that are negative, zero, huge, infinite or NaN,
+    and an infinite read variance. Both compute the same IEEE operations in the same order, so
+    the results are equal bit for bit (NaN where NaN)."""
+    from calibration import hdr
+
+    rng = np.random.default_rng(17)
+    n = 4096
+    s = rng.normal(500.0, 300.0, (n_brackets, n))
+    ok = (rng.random((n_brackets, n)) < 0.7).astype(np.float64)
+    ref = rng.uniform(-1e3, 1e6, n)
+    ref[::7] = np.inf
+    ref[3::11] = np.nan
+    ref[5::13] = 0.0
+    t = np.array([0.001, 0.004, 0.016])[:n_brackets]
+    for var_read in (np.array([9.6, 10.9, 15.2])[:n_brackets], np.array([9.6, np.inf, 15.2])):
+        var_read = var_read[:n_brackets]
+        fused = (np.empty(n), np.empty(n))
+        general = (np.empty(n), np.empty(n))
+        hdr._row_weighted_fused(s, ok, t, var_read, ref, *fused)
+        scratch = (np.empty((n_brackets, n)), np.empty(n), np.empty(n), np.empty(n), np.empty(n))
+        hdr._row_weighted_general(s, ok, t, var_read, ref, scratch, *general)
+        assert np.isnan(general[0]).any() and np.isfinite(general[0]).any()
+        for a, b in zip(fused, general, strict=True):
+            np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+            number = ~np.isnan(a)  # the same bits, the sign of zero included
+            np.testing.assert_array_equal(a[number].view(np.int64), b[number].view(np.int64))
