@@ -404,14 +404,14 @@ def _own_merge_where(s, ok, t, var_read, shortest, cnt, dropped, n_own, ref):  #
 
 
 @numba.njit(cache=True, nogil=True)
-def _first_row(y, frames, s, ok, first, fu, us):  # noqa: ANN001
+def _first_row(y, frames, noise, s, ok, first, fu, us):  # noqa: ANN001
     """Step 1 for row y, whose electrons are `s`, `ok`: every value's own-value merge into
     `first`, and whether it may serve as a neighbour (valid and not all saturated) into the
-    padded rows `us` (1/0) and `fu` (its merge where usable, 0 elsewhere)."""
-    _dn, _off, _gain, _white, t, read_e, valid, _sy, sx, _margin = frames
+    padded rows `us` (1/0) and `fu` (its merge where usable, 0 elsewhere). `noise` = (read
+    variances, index of the shortest bracket), from `_merge_band`."""
+    _dn, _off, _gain, _white, t, _read_e, valid, _sy, sx, _margin = frames
+    var_read, shortest = noise
     nb, n = s.shape
-    var_read = np.maximum(read_e**2, 1e-12)
-    shortest = np.argmin(t)
     phi, sat = np.empty(n), np.empty(n)
     scratch, tmp = _row_scratch(nb, n), (np.empty(n), np.empty(n))
     _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp)
@@ -424,7 +424,7 @@ def _first_row(y, frames, s, ok, first, fu, us):  # noqa: ANN001
 
 
 @numba.njit(cache=True, nogil=True)
-def _final_row(y, frames, field, s, ok, first, near_rows, out):  # noqa: ANN001
+def _final_row(y, frames, field, noise, s, ok, first, near_rows, out):  # noqa: ANN001
     """Step 2 for row y, whose electrons are `s`, `ok` (its clip test drops brackets from
     `ok`): the neighbours' mean, the brackets near the clip dropped by it, and the merge
     weighted by it (or by the value's own merge `first` where it has no usable neighbour),
@@ -433,9 +433,8 @@ def _final_row(y, frames, field, s, ok, first, near_rows, out):  # noqa: ANN001
     _dn, off, gain, white, t, read_e, _valid, _sy, sx, margin = frames
     flat_gain, flat_rel_var, apply_flat = field
     flux, var, all_sat = out
+    var_read, shortest = noise
     nb, n = s.shape
-    var_read = np.maximum(read_e**2, 1e-12)
-    shortest = np.argmin(t)
     tot, cnt, ref = np.empty(n), np.empty(n), np.empty(n)
     dropped, kept = np.zeros(n), np.zeros(n)
     # The 8 neighbours (rows y ∓ sy, y; columns x ∓ sx, x) in one pass, added in the order
@@ -505,17 +504,18 @@ def _merge_band(frames, field, out, y0, y1):  # noqa: ANN001
     first = np.empty((rows, n))
     fu, us = np.zeros((rows, n + 2 * sx)), np.zeros((rows, n + 2 * sx))
     ring = sy + 1  # electrons of rows y − sy … y: step 2 of row y − sy needs them
+    noise = (np.maximum(frames[5] ** 2, 1e-12), np.argmin(frames[4]))  # once, not per row
     s_ring, ok_ring = np.empty((ring, nb, n)), np.empty((ring, nb, n))
     for y in range(lo, y1 + sy):
         if y < hi:
             k, r = y % ring, y - base
             _row_electrons(dn, off, gain, white, y, s_ring[k], ok_ring[k])
-            _first_row(y, frames, s_ring[k], ok_ring[k], first[r], fu[r], us[r])
+            _first_row(y, frames, noise, s_ring[k], ok_ring[k], first[r], fu[r], us[r])
         yf = y - sy  # every step-1 row around it is done
         if y0 <= yf < y1:
             k, r = yf % ring, yf - base
             near = (fu[r - sy], fu[r], fu[r + sy], us[r - sy], us[r], us[r + sy])
-            _final_row(yf, frames, field, s_ring[k], ok_ring[k], first[r], near, out)
+            _final_row(yf, frames, field, noise, s_ring[k], ok_ring[k], first[r], near, out)
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
