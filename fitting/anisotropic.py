@@ -178,26 +178,25 @@ def _aniso_row(wi, wo, geo, j):
 
 
 @njit(parallel=True, cache=True)
-def _aniso_geometry_par(wi, wo):
-    geo = np.zeros((_A_ROWS, wi.shape[0]))
+def _aniso_geometry_par(wi, wo, geo):
     for j in prange(wi.shape[0]):
         _aniso_row(wi, wo, geo, j)
-    return geo
 
 
 @njit(cache=True)
-def _aniso_geometry_ser(wi, wo):
-    geo = np.zeros((_A_ROWS, wi.shape[0]))
+def _aniso_geometry_ser(wi, wo, geo):
     for j in range(wi.shape[0]):
         _aniso_row(wi, wo, geo, j)
-    return geo
 
 
-def anisotropic_geometry(wi, wo, parallel=False) -> np.ndarray:
+def anisotropic_geometry(wi, wo, parallel=False, dtype=np.float64) -> np.ndarray:
     """Per-pair table (19, N): rows 0–8 as :func:`fitting.kernels.microfacet_geometry`, then the
     tangential components of ω_i and ω_o in the *sample* frame, s = ω_i + ω_o (unnormalised)
-    and Ward's three normalisations N. The rotation by φ₀ is applied per parameter set."""
-    return _aniso_geometry_par(wi, wo) if parallel else _aniso_geometry_ser(wi, wo)
+    and Ward's three normalisations N. The rotation by φ₀ is applied per parameter set.
+    Computed in float64, stored in ``dtype`` (float32 for the single-precision kernels)."""
+    geo = np.zeros((_A_ROWS, wi.shape[0]), dtype)
+    (_aniso_geometry_par if parallel else _aniso_geometry_ser)(wi, wo, geo)
+    return geo
 
 
 @njit(cache=True)
@@ -314,83 +313,142 @@ def _block(geo, pt, rs, cs, kind, c1, c2, c3, log_out, out, b, n_chunks):
 
 @njit(cache=True)
 def _stage_q(geo, j0, qbuf, c, s, iax2, iay2):
-    """q = (s_x'²/α_x² + s_y'²/α_y²)/s_z² for a chunk at one parameter set (branch-free)."""
+    """q = (s_x'²/α_x² + s_y'²/α_y²)/s_z² for a chunk at one parameter set (branch-free).
+    Constants here and in the other stages are in the buffers' precision (numba widens float32
+    ⊕ a Python float to float64; see fitting.kernels._stage_d)."""
+    # rows as 1-D views from j0: contiguous loads (see fitting.kernels._stage_d)
+    g_sx = geo[_A_SX, j0 : j0 + qbuf.size]
+    g_sy = geo[_A_SY, j0 : j0 + qbuf.size]
+    g_sz = geo[_A_SZ, j0 : j0 + qbuf.size]
+    zero = qbuf.dtype.type(0.0)
     for i in range(qbuf.size):
-        j = j0 + i
-        sx = geo[_A_SX, j]
-        sy = geo[_A_SY, j]
-        sz = geo[_A_SZ, j]
+        sx = g_sx[i]
+        sy = g_sy[i]
+        sz = g_sz[i]
         xr = c * sx + s * sy
         yr = -s * sx + c * sy
-        qbuf[i] = (xr * xr * iax2 + yr * yr * iay2) / (sz * sz) if sz > 0.0 else 0.0
+        qbuf[i] = (xr * xr * iax2 + yr * yr * iay2) / (sz * sz) if sz > zero else zero
 
 
 @njit(cache=True)
-def _stage_d(geo, j0, qbuf, dbuf, dn, dist):
-    """Anisotropic D from q (exp(−q) by the vectorisable kernel exp; 0 where it underflows)."""
+def _stage_d(geo, j0, dbuf, c, s, iax2, iay2, dn, dist):
+    """Anisotropic D for a chunk at one parameter set, q = Q/s_z² with Q = s_x'²/α_x² +
+    s_y'²/α_y² computed in the same loop. GGX needs no q: (1 + tan²θ_h)/(1 + q) =
+    |s|²/(s_z² + Q), one division; Beckmann's exp(−q) by the vectorisable kernel exp (0 where it
+    underflows). Constants in the buffers' precision (see fitting.kernels._stage_d)."""
+    # rows as 1-D views from j0: contiguous loads (see fitting.kernels._stage_d)
+    g_sx = geo[_A_SX, j0 : j0 + dbuf.size]
+    g_sy = geo[_A_SY, j0 : j0 + dbuf.size]
+    g_sz = geo[_A_SZ, j0 : j0 + dbuf.size]
+    g_t2 = geo[_A_T2, j0 : j0 + dbuf.size]
+    one, zero = dbuf.dtype.type(1.0), dbuf.dtype.type(0.0)
     if dist == _k.DIST_BECKMANN:
-        for i in range(qbuf.size):
-            t2 = geo[_A_T2, j0 + i]
-            x = qbuf[i]
-            e = _k.exp_neg_scalar(min(x, 745.0))
-            dbuf[i] = e * (1.0 + t2) * (1.0 + t2) * dn if x < 745.2 else 0.0
+        for i in range(dbuf.size):
+            sx = g_sx[i]
+            sy = g_sy[i]
+            sz = g_sz[i]
+            xr = c * sx + s * sy
+            yr = -s * sx + c * sy
+            x = (xr * xr * iax2 + yr * yr * iay2) / (sz * sz) if sz > zero else zero
+            t2 = g_t2[i]
+            e = _k.exp_neg_any(min(x, _k.exp_clamp(x)))
+            dbuf[i] = e * (one + t2) * (one + t2) * dn if x < _k.exp_underflow(x) else zero
     else:
-        for i in range(qbuf.size):
-            r = (1.0 + geo[_A_T2, j0 + i]) / (1.0 + qbuf[i])
+        for i in range(dbuf.size):
+            sx = g_sx[i]
+            sy = g_sy[i]
+            sz2 = g_sz[i] * g_sz[i]
+            xr = c * sx + s * sy
+            yr = -s * sx + c * sy
+            den = sz2 + (xr * xr * iax2 + yr * yr * iay2)
+            r = (sz2 + (sx * sx + sy * sy)) / den if den > zero else zero
             dbuf[i] = r * r * dn
 
 
 @njit(cache=True)
-def _stage_g(geo, j0, gbuf, c, s, ax, ay, dist, shadow):
-    """Smith G/(4 ci co) with the projected roughness u of each direction, or the V-cavity."""
+def _stage_g_frac(geo, j0, gbuf, gden, c, s, ax, ay, dist, shadow):
+    """Smith G/(4 ci co) with the projected roughness u of each direction, or the V-cavity, as
+    a fraction gbuf/gden (gden = 1 where the form is computed whole), so that the caller divides
+    once per value (as fitting.kernels._stage_g_frac); one branch-free loop per form.
+    u² = (α_x x')² + (α_y y')² in the frame rotated by φ₀ (Heitz 2014 §5.3), with the rotation
+    and the scaling folded into one 2×2 matrix per set."""
+    num = gbuf.dtype.type
+    one, zero, half, quarter = num(1.0), num(0.0), num(0.5), num(0.25)
+    size = gbuf.size
+    # Rows as 1-D views from j0 (contiguous loads; see fitting.kernels._stage_d).
+    g_ci = geo[_A_CI, j0 : j0 + size]
+    g_co = geo[_A_CO, j0 : j0 + size]
+    g_xi = geo[_A_XI, j0 : j0 + size]
+    g_yi = geo[_A_YI, j0 : j0 + size]
+    g_xo = geo[_A_XO, j0 : j0 + size]
+    g_yo = geo[_A_YO, j0 : j0 + size]
+    m11, m12, m21, m22 = ax * c, ax * s, -ay * s, ay * c
+    for i in range(size):
+        gden[i] = one
     if shadow == _k.SHADOW_VCAVITY:
-        for i in range(gbuf.size):
-            gbuf[i] = geo[_A_GV, j0 + i]
-        return
-    for i in range(gbuf.size):
-        j = j0 + i
-        ci = geo[_A_CI, j]
-        co = geo[_A_CO, j]
-        xi = geo[_A_XI, j]
-        yi = geo[_A_YI, j]
-        xo = geo[_A_XO, j]
-        yo = geo[_A_YO, j]
-        pi = ax * (c * xi + s * yi)
-        qi = ay * (-s * xi + c * yi)
-        po = ax * (c * xo + s * yo)
-        qo = ay * (-s * xo + c * yo)
-        ui2 = pi * pi + qi * qi
-        uo2 = po * po + qo * qo
-        if dist == _k.DIST_GGX and shadow != _k.SHADOW_SMITH_CORRELATED:
-            # G₁/cos = 2/(c + R), R = sqrt(c² + u²)
+        g_gv = geo[_A_GV, j0 : j0 + size]
+        for i in range(size):
+            gbuf[i] = g_gv[i]
+    elif dist == _k.DIST_GGX and shadow != _k.SHADOW_SMITH_CORRELATED:
+        # G₁/cos = 2/(c + R), R = sqrt(c² + u²)  ⇒  G/(4 ci co) = 1/((ci + Ri)(co + Ro))
+        for i in range(size):
+            ci = g_ci[i]
+            co = g_co[i]
+            ui2 = _norm2(m11, m12, m21, m22, g_xi[i], g_yi[i])
+            uo2 = _norm2(m11, m12, m21, m22, g_xo[i], g_yo[i])
             den = (ci + math.sqrt(ci * ci + ui2)) * (co + math.sqrt(co * co + uo2))
-            gbuf[i] = 1.0 / den if den > 0.0 else 0.0
-        elif dist == _k.DIST_GGX:
+            gbuf[i] = one if den > zero else zero
+            gden[i] = den if den > zero else one
+    elif dist == _k.DIST_GGX:
+        for i in range(size):
+            ci = g_ci[i]
+            co = g_co[i]
+            ui2 = _norm2(m11, m12, m21, m22, g_xi[i], g_yi[i])
+            uo2 = _norm2(m11, m12, m21, m22, g_xo[i], g_yo[i])
             ri = math.sqrt(ci * ci + ui2) + ci
             ro = math.sqrt(co * co + uo2) + co
-            li = 0.5 * ui2 / ri if ri > 0.0 else 0.0
-            lo = 0.5 * uo2 / ro if ro > 0.0 else 0.0
+            li = half * ui2 / ri if ri > zero else zero
+            lo = half * uo2 / ro if ro > zero else zero
             den = ci * co + (co * li + ci * lo)
-            gbuf[i] = 0.25 / den if den > 0.0 else 0.0
-        elif shadow == _k.SHADOW_SMITH_RATIONAL:
-            ui = math.sqrt(ui2)
-            uo = math.sqrt(uo2)
-            ni = 3.535 * ui + 2.181 * ci
-            di = ui * ui + 2.276 * ci * ui + 2.577 * ci * ci
-            no = 3.535 * uo + 2.181 * co
-            do = uo * uo + 2.276 * co * uo + 2.577 * co * co
-            if not ci < 1.6 * ui:
-                ni = 1.0
+            gbuf[i] = quarter if den > zero else zero
+            gden[i] = den if den > zero else one
+    elif shadow == _k.SHADOW_SMITH_RATIONAL:
+        a1, a2, b1, b2, cut = num(3.535), num(2.181), num(2.276), num(2.577), num(1.6)
+        for i in range(size):
+            ci = g_ci[i]
+            co = g_co[i]
+            ui = math.sqrt(_norm2(m11, m12, m21, m22, g_xi[i], g_yi[i]))
+            uo = math.sqrt(_norm2(m11, m12, m21, m22, g_xo[i], g_yo[i]))
+            ni = a1 * ui + a2 * ci
+            di = ui * ui + b1 * ci * ui + b2 * ci * ci
+            no = a1 * uo + a2 * co
+            do = uo * uo + b1 * co * uo + b2 * co * co
+            if not ci < cut * ui:
+                ni = one
                 di = ci
-            if not co < 1.6 * uo:
-                no = 1.0
+            if not co < cut * uo:
+                no = one
                 do = co
             den = di * do
-            gbuf[i] = 0.25 * (ni * no) / den if den > 0.0 else 0.0
-        elif geo[_A_VALID, j] != 0.0:
-            gbuf[i] = _k.smith_over_4cc(ci, co, math.sqrt(ui2), math.sqrt(uo2), 1.0, dist, shadow)
-        else:
-            gbuf[i] = 0.0
+            gbuf[i] = quarter * (ni * no) if den > zero else zero
+            gden[i] = den if den > zero else one
+    else:
+        g_valid = geo[_A_VALID, j0 : j0 + size]
+        for i in range(size):
+            if g_valid[i] != zero:
+                ui = math.sqrt(_norm2(m11, m12, m21, m22, g_xi[i], g_yi[i]))
+                uo = math.sqrt(_norm2(m11, m12, m21, m22, g_xo[i], g_yo[i]))
+                gbuf[i] = _k.smith_over_4cc(g_ci[i], g_co[i], ui, uo, one, dist, shadow)
+            else:
+                gbuf[i] = zero
+
+
+@njit(cache=True)
+def _norm2(m11, m12, m21, m22, x, y):
+    """|M (x, y)|² for the 2×2 matrix M (the projected roughness u² of a direction)."""
+    p = m11 * x + m12 * y
+    q = m21 * x + m22 * y
+    return p * p + q * q
 
 
 @njit(cache=True)
@@ -400,30 +458,33 @@ def _block_per_set(geo, pt, kind, c1, c2, c3, log_out, out, b, n_chunks):
     w = b // n_chunks
     j0 = (b - w * n_chunks) * _k.CHUNK
     size = min(_k.CHUNK, n - j0)
-    buf = np.empty((4, size))
+    buf = np.empty((5, size), out.dtype)  # in out's precision
+    num = out.dtype.type
     qbuf, dbuf, gbuf, fbuf = buf[0], buf[1], buf[2], buf[3]
+    gden, fden = buf[4], buf[0]  # qbuf is Ward's only
     c, s = pt[w, _Q_C], pt[w, _Q_S]
     kdpi, ks = pt[w, _Q_KDPI], pt[w, _Q_KS]
     if kind == 0:
-        _stage_q(geo, j0, qbuf, c, s, pt[w, _Q_IAX2], pt[w, _Q_IAY2])
-        _stage_d(geo, j0, qbuf, dbuf, pt[w, _Q_DN], c1)
-        _stage_g(geo, j0, gbuf, c, s, pt[w, _Q_AX], pt[w, _Q_AY], c1, c2)
-        _k.stage_fresnel(geo, j0, fbuf, pt[w, _Q_P1], pt[w, _Q_P2], c3)
+        _stage_d(geo, j0, dbuf, c, s, pt[w, _Q_IAX2], pt[w, _Q_IAY2], pt[w, _Q_DN], c1)
+        _stage_g_frac(geo, j0, gbuf, gden, c, s, pt[w, _Q_AX], pt[w, _Q_AY], c1, c2)
+        _k.stage_fresnel_frac(geo, j0, fbuf, fden, pt[w, _Q_P1], pt[w, _Q_P2], c3)
+        # one division per value for G's and F's (both denominators are products of O(1) sums)
         for i in range(size):
-            dbuf[i] = kdpi + ks * (dbuf[i] * gbuf[i] * fbuf[i])
+            dbuf[i] = kdpi + ks * (dbuf[i] * gbuf[i] * fbuf[i]) / (gden[i] * fden[i])
     else:
         # exp(−q) N/(4π α_x α_y) with N the pair's normalisation (row _A_NW + kind)
         _stage_q(geo, j0, qbuf, c, s, pt[w, _Q_IAX2], pt[w, _Q_IAY2])
-        scale = 0.25 * pt[w, _Q_DN]
-        row = _A_NW + c1
+        scale = num(0.25) * pt[w, _Q_DN]
+        g_norm = geo[_A_NW + c1, j0 : j0 + size]  # a 1-D view: contiguous loads
         for i in range(size):
             x = qbuf[i]
-            e = _k.exp_neg_scalar(min(x, 745.0))
-            dbuf[i] = kdpi + ks * scale * (e if x < 745.2 else 0.0) * geo[row, j0 + i]
+            e = _k.exp_neg_any(min(x, _k.exp_clamp(x)))
+            dbuf[i] = kdpi + ks * scale * (e if x < _k.exp_underflow(x) else num(0.0)) * g_norm[i]
+    g_valid = geo[_A_VALID, j0 : j0 + size]
     for i in range(size):
         j = j0 + i
         v = dbuf[i]
-        if geo[_A_VALID, j] == 0.0:
+        if g_valid[i] == num(0.0):
             out[w, j] = _NINF if log_out else 0.0
         elif not log_out:
             out[w, j] = v
@@ -459,9 +520,10 @@ def _kernel_ser(geo, pt, rs, cs, kind, c1, c2, c3, log_out, out):
 
 def _run_kernel(name, cols, wi, wo, kind, codes, log, out):
     """Build the tables from the (rows, 1)/(rows, N) parameter columns and run the kernel."""
-    geo = anisotropic_geometry(wi, wo, _parallel_geometry(out, name))
+    geo = anisotropic_geometry(wi, wo, _parallel_geometry(out, name), out.dtype)
     flat, per_sample = _flat_parameters(cols, out)
     pt = _parameter_table(*(flat[k] for k in ("kd", "ks", "ax", "ay", "phi0", "p1", "p2")))
+    pt = pt.astype(out.dtype, copy=False)  # float64 per row, rounded once for float32
     rs, cs = (out.shape[1], 1) if per_sample else (1, 0)
     _k.dispatch(name, _kernel_par, _kernel_ser, out.size, geo, pt, rs, cs, kind, *codes, log, out)
 
@@ -471,6 +533,8 @@ def _run_kernel(name, cols, wi, wo, kind, codes, log, out):
 
 class TorranceSparrowAnisotropic(Model):
     """f = kd/π + ks D G F/(4 cos θ_i cos θ_o) with anisotropic D and Smith G (module docstring)."""
+
+    float32 = True
 
     def __init__(
         self, distribution: str = "beckmann", shadowing: str = "smith", fresnel: str = "dielectric"

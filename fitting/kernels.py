@@ -22,7 +22,9 @@ import time
 
 import numba
 import numpy as np
-from numba import prange
+from llvmlite import ir as llvm_ir
+from numba import prange, types
+from numba.extending import intrinsic, overload
 
 __all__ = [
     "DIST_BECKMANN",
@@ -56,6 +58,7 @@ __all__ = [
     "fresnel_value",
     "exp_neg_scalar",
     "stage_fresnel",
+    "stage_fresnel_frac",
     "stage_distribution",
     "stage_shadowing",
     "CHUNK",
@@ -252,12 +255,97 @@ def _exp_neg(x):
     return p * _POW2_NEG[int(k)]
 
 
+# The float32 twin for the single-precision kernels (MCMC's likelihood, `Model.evaluate(...,
+# precision="float32")`): the same reduction with Cody-Waite constants split for float32
+# (ln2_hi has 12 significant bits, so k·ln2_hi is exact for k < 2¹²) and a degree-7 Taylor
+# polynomial (truncation |r|⁸/8! ≤ 5e-9 relative for |r| ≤ ln2/2, below float32's 6e-8). 2^−k is
+# made from its exponent bits, not gathered from a table: a 16-lane gather measured 7× slower
+# than the whole rest of the function. Every constant is a np.float32: numba widens
+# float32 ⊕ a Python float (or an int) to float64, which would make the loops float64 again.
+# Denormals are avoided, not only for accuracy: an operation with a denormal operand or result
+# takes a microcode assist on x86 (~100 cycles for the whole vector), and a Beckmann lobe's tail
+# made the float32 kernel 2.5× slower than the float64 one. So exp(−x) is taken as 0 from
+# x = 86 (e^−86 = 4.4e-38, just above float32's smallest normal 1.2e-38; k ≤ 125 there, so
+# p·2^−k stays normal): an absolute change below 4.4e-38, where the float64 kernel's cut is at
+# 745.2 (its denormals start at 708).
+_F32 = np.float32
+_LN2_HI_32 = _F32(0.693145751953125)
+_LN2_LO_32 = _F32(1.428606765330187045e-06)
+_INV_LN2_32 = _F32(1.44269504088896338700)
+_EXP_C_32 = tuple(_F32(1.0 / math.factorial(i)) for i in range(8))
+_HALF_32 = _F32(0.5)
+_EXP_CLAMP_32 = _F32(86.0)
+_EXP_UNDERFLOW_32 = _F32(86.0)
+
+
+@intrinsic
+def _float32_from_bits(typingctx, bits):
+    """The float32 whose IEEE bit pattern is the int32 ``bits`` (an LLVM bitcast)."""
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], llvm_ir.FloatType())
+
+    return types.float32(types.int32), codegen
+
+
+@njit(cache=True)
+def _exp_neg32(x):
+    # x ≥ 0, so truncation is the floor; k stays a float32 (math.floor gives an int, and an int
+    # times a float32 is a float64 in numba).
+    ki = np.int32(x * _INV_LN2_32 + _HALF_32)
+    k = _F32(ki)
+    r = (k * _LN2_HI_32 - x) + k * _LN2_LO_32
+    p = _EXP_C_32[7]
+    p = p * r + _EXP_C_32[6]
+    p = p * r + _EXP_C_32[5]
+    p = p * r + _EXP_C_32[4]
+    p = p * r + _EXP_C_32[3]
+    p = p * r + _EXP_C_32[2]
+    p = p * r + _EXP_C_32[1]
+    p = p * r + _EXP_C_32[0]
+    return p * _float32_from_bits((np.int32(127) - ki) << np.int32(23))  # 2^−k, 0 ≤ k ≤ 126
+
+
+def exp_neg_any(x):  # pragma: no cover - numba code only (the overload below)
+    """exp(−x) in x's precision: the float64 or the float32 polynomial above."""
+    raise NotImplementedError
+
+
+def exp_clamp(x):  # pragma: no cover - numba code only
+    """The largest argument the kernels pass to exp_neg_any in x's precision (745.0 or 86.0)."""
+    raise NotImplementedError
+
+
+def exp_underflow(x):  # pragma: no cover - numba code only
+    """The x from which the kernels take exp(−x) as 0 in x's precision (745.2 or 86.0)."""
+    raise NotImplementedError
+
+
+_OVERLOAD_OPTIONS = {"nogil": True, "error_model": "numpy"}
+
+
+@overload(exp_neg_any, jit_options=_OVERLOAD_OPTIONS)
+def _exp_neg_any_impl(x):
+    return (lambda x: _exp_neg32(x)) if x == types.float32 else (lambda x: _exp_neg(x))
+
+
+@overload(exp_clamp, jit_options=_OVERLOAD_OPTIONS)
+def _exp_clamp_impl(x):
+    return (lambda x: _EXP_CLAMP_32) if x == types.float32 else (lambda x: 745.0)
+
+
+@overload(exp_underflow, jit_options=_OVERLOAD_OPTIONS)
+def _exp_underflow_impl(x):
+    return (lambda x: _EXP_UNDERFLOW_32) if x == types.float32 else (lambda x: _EXP_UNDERFLOW)
+
+
 @njit(cache=True)
 def exp_neg(x):
-    """exp(−x) for an array x of values in [0, 745.2) by the vectorisable kernel formula."""
+    """exp(−x) for an array x of values in [0, 745.2) ([0, 86) in float32) by the
+    vectorisable kernel formula, in x's precision."""
     out = np.empty_like(x)
     for i in range(x.size):
-        out.flat[i] = _exp_neg(x.flat[i])
+        out.flat[i] = exp_neg_any(x.flat[i])
     return out
 
 
@@ -305,22 +393,18 @@ def _geometry_row(wi, wo, geo, j):
 
 
 @njit(parallel=True, cache=True)
-def _microfacet_geometry_par(wi, wo):
-    geo = np.zeros((_G_COLS, wi.shape[0]))
+def _microfacet_geometry_par(wi, wo, geo):
     for j in prange(wi.shape[0]):
         _geometry_row(wi, wo, geo, j)
-    return geo
 
 
 @njit(cache=True)
-def _microfacet_geometry_ser(wi, wo):
-    geo = np.zeros((_G_COLS, wi.shape[0]))
+def _microfacet_geometry_ser(wi, wo, geo):
     for j in range(wi.shape[0]):
         _geometry_row(wi, wo, geo, j)
-    return geo
 
 
-def microfacet_geometry(wi, wo, parallel=False):
+def microfacet_geometry(wi, wo, parallel=False, dtype=np.float64):
     """Per-pair geometry table (9, N), column-major so that the stage loops read contiguously:
     valid, cos θ_i, cos θ_o, sin θ_i, sin θ_o, tan²θ_h, ω·h, cos θ_h and the V-cavity
     G/(4 cos θ_i cos θ_o).
@@ -329,10 +413,13 @@ def microfacet_geometry(wi, wo, parallel=False):
     tan²θ_h = (s_x² + s_y²)/s_z² with s = ω_i + ω_o (no normalisation; exact at θ_h = 0).
     The V-cavity term does not depend on m, so it is computed here once per pair:
     G/(4 ci co) = min{1/(4 ci co), ch/(2 vh ci), ch/(2 vh co)}, finite as either cosine → 0.
+
+    Computed in float64 from float64 directions and stored in ``dtype`` (np.float32 for the
+    single-precision kernels: each value rounded once, no float64 table in between).
     """
-    if parallel:
-        return _microfacet_geometry_par(wi, wo)
-    return _microfacet_geometry_ser(wi, wo)
+    geo = np.zeros((_G_COLS, wi.shape[0]), dtype)
+    (_microfacet_geometry_par if parallel else _microfacet_geometry_ser)(wi, wo, geo)
+    return geo
 
 
 @njit(cache=True)
@@ -483,19 +570,28 @@ def _ts_one(geo, j, pt, w, dist, shadow, fresnel, log_out):
 
 @njit(cache=True)
 def _stage_d(geo, j0, dbuf, im2, dn, dist):
-    """D for a chunk, branch-free so that it vectorises (the branch on dist is loop-invariant)."""
+    """D for a chunk, branch-free so that it vectorises (the branch on dist is loop-invariant).
+    In the buffers' precision (float64, or float32 for the single-precision path): every
+    constant is made in it, since numba widens float32 ⊕ a Python float to float64."""
+    # Rows as 1-D views from j0. Indexed by the loop's i ≥ 0 they load contiguously; with
+    # geo[row, j0 + i] numba's negative-index wraparound (j0 + i < 0 → + N) kept LLVM from
+    # proving the lanes consecutive, and it gathered every lane: 16 gathers per vector made the
+    # float32 kernels 1.5–2× slower (the float64 ones ~5 %, being divide/sqrt-bound).
+    g_t2 = geo[_G_T2, j0 : j0 + dbuf.size]
+    num = dbuf.dtype.type
+    one = num(1.0)
     if dist == DIST_BECKMANN:
         for i in range(dbuf.size):
-            t2 = geo[_G_T2, j0 + i]
+            t2 = g_t2[i]
             x = t2 * im2
-            e = _exp_neg(min(x, 745.0))
+            e = exp_neg_any(min(x, exp_clamp(x)))
             # exp(−x) underflows to 0 beyond x ≈ 745.2: the select also avoids 0·∞ there.
-            dbuf[i] = e * (1.0 + t2) * (1.0 + t2) * dn if x < _EXP_UNDERFLOW else 0.0
+            dbuf[i] = e * (one + t2) * (one + t2) * dn if x < exp_underflow(x) else num(0.0)
     else:
         for i in range(dbuf.size):
-            t2 = geo[_G_T2, j0 + i]
+            t2 = g_t2[i]
             # GGX: D = m²((1 + t2)/(m² + t2))²/π = r²/(π m²) with r = (1 + t2)/(1 + t2/m²)
-            r = (1.0 + t2) / (1.0 + t2 * im2)
+            r = (one + t2) / (one + t2 * im2)
             dbuf[i] = r * r * dn
 
 
@@ -503,55 +599,61 @@ def _stage_d(geo, j0, dbuf, im2, dn, dist):
 def _stage_f_frac(geo, j0, fbuf, fden, p1, p2, fresnel):
     """F(ω·h) for a chunk as a fraction fbuf/fden (fden = 1 where F needs no division), so the
     caller can fold the division into one per value (divide and sqrt share one unit, the
-    kernels' bottleneck); TIR and the degenerate cases by selects, not branches."""
+    kernels' bottleneck); TIR and the degenerate cases by selects, not branches. Constants in
+    the buffers' precision (see _stage_d)."""
+    # rows as 1-D views from j0: contiguous loads (see _stage_d)
+    g_vh = geo[_G_VH, j0 : j0 + fbuf.size]
+    num = fbuf.dtype.type
+    one, zero, half = num(1.0), num(0.0), num(0.5)
     if fresnel == FRESNEL_DIELECTRIC:
         eta2 = p1 * p1
         for i in range(fbuf.size):
-            c = geo[_G_VH, j0 + i]
-            u2 = (eta2 - 1.0) + c * c  # exact for η = 1
-            u = math.sqrt(max(u2, 0.0))
+            c = g_vh[i]
+            u2 = (eta2 - one) + c * c  # exact for η = 1
+            u = math.sqrt(max(u2, zero))
             b = c + u
             bp = eta2 * c + u
             a = (c - u) * bp
             ap = (eta2 * c - u) * b
             den = b * b * bp * bp
-            ok = u2 > 0.0 and den > 0.0
-            fbuf[i] = 0.5 * (a * a + ap * ap) if ok else 1.0
-            fden[i] = den if ok else 1.0
+            ok = u2 > zero and den > zero
+            fbuf[i] = half * (a * a + ap * ap) if ok else one
+            fden[i] = den if ok else one
     elif fresnel == FRESNEL_CONDUCTOR:
-        base = p1 * p1 - p2 * p2 - 1.0
-        four_e2k2 = 4.0 * p1 * p1 * p2 * p2
+        two = num(2.0)
+        base = p1 * p1 - p2 * p2 - one
+        four_e2k2 = num(4.0) * p1 * p1 * p2 * p2
         for i in range(fbuf.size):
-            c = geo[_G_VH, j0 + i]
+            c = g_vh[i]
             c2 = c * c
-            s2 = 1.0 - c2
+            s2 = one - c2
             tmp = base + c2  # η² − k² − sin²θ
             a2pb2 = math.sqrt(tmp * tmp + four_e2k2)
-            a = math.sqrt(max(0.5 * (a2pb2 + tmp), 0.0))
+            a = math.sqrt(max(half * (a2pb2 + tmp), zero))
             t1 = a2pb2 + c2
-            t2 = 2.0 * c * a
+            t2 = two * c * a
             t3 = a2pb2 * c2 + s2 * s2
             t4 = t2 * s2
             den = (t1 + t2) * (t3 + t4)
             # min(num/den, 1) = min(num, den)/den for den > 0
-            fbuf[i] = min((t1 - t2) * t3, den) if den > 0.0 else 1.0
-            fden[i] = den if den > 0.0 else 1.0
+            fbuf[i] = min((t1 - t2) * t3, den) if den > zero else one
+            fden[i] = den if den > zero else one
     elif fresnel == FRESNEL_SCHLICK:
         for i in range(fbuf.size):
-            x = 1.0 - geo[_G_VH, j0 + i]
+            x = one - g_vh[i]
             x2 = x * x
-            fbuf[i] = p1 + (1.0 - p1) * (x2 * x2 * x)
-            fden[i] = 1.0
+            fbuf[i] = p1 + (one - p1) * (x2 * x2 * x)
+            fden[i] = one
     else:
         for i in range(fbuf.size):
-            fbuf[i] = 1.0
-            fden[i] = 1.0
+            fbuf[i] = one
+            fden[i] = one
 
 
 @njit(cache=True)
 def _stage_f(geo, j0, fbuf, p1, p2, fresnel):
     """F(ω·h) for a chunk (the value: for the modules that combine it with other lobes)."""
-    fden = np.empty(fbuf.size)
+    fden = np.empty_like(fbuf)
     _stage_f_frac(geo, j0, fbuf, fden, p1, p2, fresnel)
     _divide_in_place(fbuf, fden)
 
@@ -567,82 +669,87 @@ def _divide_in_place(num, den):
 def _stage_g_frac(geo, j0, gbuf, gden, m, dist, shadow):
     """G/(4 cos θ_i cos θ_o) for a chunk as a fraction gbuf/gden (gden = 1 where the form is
     computed whole). The cheap shadowing forms get branch-free loops with at most one division
-    (so they vectorise), left to the caller; exact Beckmann Smith needs libm's erfc per pair."""
+    (so they vectorise), left to the caller; exact Beckmann Smith needs libm's erfc per pair.
+    Constants in the buffers' precision (see _stage_d)."""
+    # rows as 1-D views from j0: contiguous loads (see _stage_d)
+    g_ci = geo[_G_CI, j0 : j0 + gbuf.size]
+    g_co = geo[_G_CO, j0 : j0 + gbuf.size]
+    g_gv = geo[_G_GV, j0 : j0 + gbuf.size]
+    g_si = geo[_G_SI, j0 : j0 + gbuf.size]
+    g_so = geo[_G_SO, j0 : j0 + gbuf.size]
+    g_valid = geo[_G_VALID, j0 : j0 + gbuf.size]
+    num = gbuf.dtype.type
+    one, zero, half, quarter = num(1.0), num(0.0), num(0.5), num(0.25)
     size = gbuf.size
     for i in range(size):
-        gden[i] = 1.0
+        gden[i] = one
     if shadow == SHADOW_VCAVITY:
         for i in range(size):
-            gbuf[i] = geo[_G_GV, j0 + i]
+            gbuf[i] = g_gv[i]
     elif dist == DIST_GGX and shadow != SHADOW_SMITH_CORRELATED:
         # G₁/cos = 2/(c + R), R = sqrt(c² + α² s²)  ⇒  G/(4 ci co) = 1/((ci + Ri)(co + Ro))
         m2 = m * m
         for i in range(size):
-            j = j0 + i
-            ci = geo[_G_CI, j]
-            co = geo[_G_CO, j]
-            si = geo[_G_SI, j]
-            so = geo[_G_SO, j]
+            ci = g_ci[i]
+            co = g_co[i]
+            si = g_si[i]
+            so = g_so[i]
             ri = math.sqrt(ci * ci + m2 * si * si)
             ro = math.sqrt(co * co + m2 * so * so)
             den = (ci + ri) * (co + ro)
-            gbuf[i] = 1.0 if den > 0.0 else 0.0
-            gden[i] = den if den > 0.0 else 1.0
+            gbuf[i] = one if den > zero else zero
+            gden[i] = den if den > zero else one
     elif dist == DIST_GGX:
         # height-correlated: cos·Λ = (R − c)/2 = α² s²/(2(R + c)) (no cancellation)
         m2 = m * m
         for i in range(size):
-            j = j0 + i
-            ci = geo[_G_CI, j]
-            co = geo[_G_CO, j]
-            si = geo[_G_SI, j]
-            so = geo[_G_SO, j]
+            ci = g_ci[i]
+            co = g_co[i]
+            si = g_si[i]
+            so = g_so[i]
             ri = math.sqrt(ci * ci + m2 * si * si)
             ro = math.sqrt(co * co + m2 * so * so)
             qi = ri + ci
             qo = ro + co
-            li = 0.5 * m2 * si * si / qi if qi > 0.0 else 0.0
-            lo = 0.5 * m2 * so * so / qo if qo > 0.0 else 0.0
+            li = half * m2 * si * si / qi if qi > zero else zero
+            lo = half * m2 * so * so / qo if qo > zero else zero
             den = ci * co + (co * li + ci * lo)
-            gbuf[i] = 0.25 if den > 0.0 else 0.0
-            gden[i] = den if den > 0.0 else 1.0
+            gbuf[i] = quarter if den > zero else zero
+            gden[i] = den if den > zero else one
     elif shadow == SHADOW_SMITH_RATIONAL:
         # Walter's rational G₁ with u = m sin θ (a = c/u):  G₁/cos = (3.535u + 2.181c) /
         # (u² + 2.276cu + 2.577c²) for c < 1.6u, else 1/c. Product of the two: one division.
+        a1, a2, b1, b2, cut = num(3.535), num(2.181), num(2.276), num(2.577), num(1.6)
         for i in range(size):
-            j = j0 + i
-            ci = geo[_G_CI, j]
-            co = geo[_G_CO, j]
-            ui = m * geo[_G_SI, j]
-            uo = m * geo[_G_SO, j]
-            ni = 3.535 * ui + 2.181 * ci
-            di = ui * ui + 2.276 * ci * ui + 2.577 * ci * ci
-            no = 3.535 * uo + 2.181 * co
-            do = uo * uo + 2.276 * co * uo + 2.577 * co * co
-            if not ci < 1.6 * ui:
-                ni = 1.0
+            ci = g_ci[i]
+            co = g_co[i]
+            ui = m * g_si[i]
+            uo = m * g_so[i]
+            ni = a1 * ui + a2 * ci
+            di = ui * ui + b1 * ci * ui + b2 * ci * ci
+            no = a1 * uo + a2 * co
+            do = uo * uo + b1 * co * uo + b2 * co * co
+            if not ci < cut * ui:
+                ni = one
                 di = ci
-            if not co < 1.6 * uo:
-                no = 1.0
+            if not co < cut * uo:
+                no = one
                 do = co
             den = di * do
-            gbuf[i] = 0.25 * (ni * no) if den > 0.0 else 0.0
-            gden[i] = den if den > 0.0 else 1.0
+            gbuf[i] = quarter * (ni * no) if den > zero else zero
+            gden[i] = den if den > zero else one
     else:
         for i in range(size):
-            j = j0 + i
-            if geo[_G_VALID, j] != 0.0:
-                gbuf[i] = _smith_over_4cc(
-                    geo[_G_CI, j], geo[_G_CO, j], geo[_G_SI, j], geo[_G_SO, j], m, dist, shadow
-                )
+            if g_valid[i] != zero:
+                gbuf[i] = _smith_over_4cc(g_ci[i], g_co[i], g_si[i], g_so[i], m, dist, shadow)
             else:
-                gbuf[i] = 0.0
+                gbuf[i] = zero
 
 
 @njit(cache=True)
 def _stage_g(geo, j0, gbuf, m, dist, shadow):
     """G/(4 cos θ_i cos θ_o) for a chunk (the value: for the modules that sum several lobes)."""
-    gden = np.empty(gbuf.size)
+    gden = np.empty_like(gbuf)
     _stage_g_frac(geo, j0, gbuf, gden, m, dist, shadow)
     _divide_in_place(gbuf, gden)
 
@@ -653,7 +760,7 @@ def _ts_block(geo, pt, dist, shadow, fresnel, log_out, out, b, n_chunks):
     w = b // n_chunks
     j0 = (b - w * n_chunks) * _CHUNK
     size = min(_CHUNK, n - j0)
-    buf = np.empty((5, size))  # one allocation per work item
+    buf = np.empty((5, size), out.dtype)  # one allocation per work item, in out's precision
     dbuf = buf[0]
     gbuf = buf[1]
     fbuf = buf[2]
@@ -667,9 +774,12 @@ def _ts_block(geo, pt, dist, shadow, fresnel, log_out, out, b, n_chunks):
     kdpi = pt[w, _P_KDPI]
     ks = pt[w, _P_KS]
     if not log_out:
+        zero = out.dtype.type(0.0)
+        valid = geo[_G_VALID, j0 : j0 + size]  # 1-D views: contiguous loads and stores
+        row = out[w, j0 : j0 + size]
         for i in range(size):
             v = kdpi + ks * (dbuf[i] * gbuf[i] * fbuf[i]) / (gden[i] * fden[i])
-            out[w, j0 + i] = v if geo[_G_VALID, j0 + i] != 0.0 else 0.0
+            row[i] = v if valid[i] != zero else zero
     else:
         for i in range(size):
             j = j0 + i
@@ -824,11 +934,15 @@ def _lobe_block(geo, pt, rs, cs, log_out, out, b, n_chunks):
         kdpi = pt[w * rs, 0]
         ksn = pt[w * rs, 2]
         nexp = pt[w * rs, 4]
-        for j in range(j0, j1):
-            x = -nexp * geo[1, j]  # −n log base ≥ 0 (+inf where base = 0)
+        # 1-D views from j0: contiguous loads and stores (see _stage_d)
+        valid = geo[0, j0:j1]
+        log_base = geo[1, j0:j1]
+        row = out[w, j0:j1]
+        for i in range(j1 - j0):
+            x = -nexp * log_base[i]  # −n log base ≥ 0 (+inf where base = 0)
             e = _exp_neg(min(x, 745.0))
             v = kdpi + ksn * (e if x < _EXP_UNDERFLOW else 0.0)
-            out[w, j] = v if geo[0, j] != 0.0 else 0.0
+            row[i] = v if valid[i] != 0.0 else 0.0
         return
     for j in range(j0, j1):
         r = w * rs + j * cs
@@ -956,6 +1070,8 @@ exp_neg_scalar = _exp_neg
 #: The Fresnel stage F(ω·h) for a chunk, reading ω·h from row 6 of a geometry table laid out as
 #: :func:`microfacet_geometry` (rows 0–8).
 stage_fresnel = _stage_f
+#: The same as a fraction (value, denominator), for a caller that divides once per value.
+stage_fresnel_frac = _stage_f_frac
 #: The D and G/(4 cos θ_i cos θ_o) stages of torrance-sparrow for a chunk (same table layout).
 stage_distribution = _stage_d
 stage_shadowing = _stage_g

@@ -34,6 +34,19 @@ Model (per sample j, channel c; f̂ = model f_r, f the measurement, σ its 1-σ 
 
 The result is finite or −∞, never NaN: −∞ outside the prior support or where the model is not
 finite for any used sample.
+
+Precision: the model is evaluated in float64 unless ``precision`` is set to "float32"
+(:meth:`Likelihood.choose_precision`, which the MCMC calls; least squares stays float64, its
+finite-difference steps being below float32's resolution). The sums are float64 either way.
+float32 rounds f̂_j by a few float32 ulps (6e-8) where the model is well conditioned, by more
+where it is not (a conductor's Fresnel term subtracts nearly equal numbers for a noble metal;
+an anisotropic lobe's rotation by φ₀ cancels for a narrow α: up to ~1e-4 relative at the
+priors' edges), and a change δ_j of f̂_j moves ln L by ≈ Σ_j z_j δ_j/σ_j (z_j = r_j/√v_j). So
+no fixed bound decides: :meth:`choose_precision` evaluates ln L in both precisions at points
+where the sampler will go (the least-squares optimum and draws of its Laplace approximation)
+and takes float32 only if they differ by less than F32_LNL_LIMIT = 0.01 everywhere there (a 1 %
+change of a Metropolis acceptance ratio); many precise rows or an ill-conditioned material
+stay float64.
 """
 
 from __future__ import annotations
@@ -52,12 +65,22 @@ from fitting.nuisance import ANGLE_NUISANCES, arm_deltas, arm_rows, measured_geo
 from fitting.priors import ParameterSpace
 from fitting.samples import Flags, SampleTable
 
-__all__ = ["ChannelData", "Likelihood", "LIKELIHOOD_KINDS", "DARK_SNR", "dark_snr_of"]
+__all__ = [
+    "ChannelData",
+    "Likelihood",
+    "LIKELIHOOD_KINDS",
+    "DARK_SNR",
+    "dark_snr_of",
+    "F32_LNL_LIMIT",
+]
 
 #: The calibration's default DARK rule (calibration.reduce.ReduceOptions.min_snr): f/σ < 3.
 DARK_SNR = 3.0
 
 LIKELIHOOD_KINDS = ("gaussian", "student-t")
+
+#: The largest change of ln L from float32 rounding the MCMC accepts (module docstring).
+F32_LNL_LIMIT = 0.01
 
 
 def dark_snr_of(metadata: dict[str, str]) -> float:
@@ -215,6 +238,8 @@ class Likelihood:
                 "no usable samples to fit (after removing flagged and non-finite rows)"
             )
         self._f_ref: list[np.ndarray] | None = None  # discrepancy reference f̃, per channel
+        #: The model's precision in :meth:`predict` ("float64", or "float32": choose_precision).
+        self.precision = "float64"
         self._angle_ref: tuple | None = None  # arm-zero linearisation (set_angle_reference)
         # Constant of the Student-t density, precomputed once.
         self._t_const = float(
@@ -222,6 +247,25 @@ class Likelihood:
         )
 
     # -- model ----------------------------------------------------------------------------------
+    def choose_precision(self, probes: np.ndarray) -> tuple[str, float]:
+        """Use float32 for the model if it has the kernels for it and ln L in float32 differs
+        from float64 by less than F32_LNL_LIMIT at every one of ``probes`` (K, D), points in the
+        sampled space where the sampler will go; else float64. Returns (the choice, the largest
+        difference; NaN for a model without float32 kernels) and sets ``precision``."""
+        self.precision = "float64"
+        if not getattr(self.model, "float32", False):
+            return self.precision, float("nan")
+        probes = np.atleast_2d(np.asarray(probes, dtype=np.float64))
+        ll64 = self.log_likelihood(probes)
+        self.precision = "float32"
+        ll32 = self.log_likelihood(probes)
+        same_support = np.array_equal(np.isfinite(ll64), np.isfinite(ll32))
+        ok = np.isfinite(ll64)
+        diff = float(np.max(np.abs(ll32[ok] - ll64[ok]))) if ok.any() else float("inf")
+        if not (same_support and diff < F32_LNL_LIMIT):
+            self.precision = "float64"
+        return self.precision, diff
+
     def set_discrepancy_reference(self, theta: np.ndarray | None) -> None:
         """Freeze the discrepancy's reference f̃ at the model's prediction for θ (D,), or go back
         to f̃ = f̂(θ) with None. Where the model is not finite there, the measured |f| is used."""
@@ -256,8 +300,12 @@ class Likelihood:
                 elif any(np.any(v != 0) for v in shifts.values()):
                     fm = self._evaluate_shifted(d, params, shifts)
                 else:  # the arms where they were recorded
-                    fm = self.model.evaluate(params, d.wi, d.wo)
-            fm = np.broadcast_to(np.asarray(fm, dtype=np.float64), (theta.shape[0], d.f.size))
+                    fm = self.model.evaluate(params, d.wi, d.wo, precision=self.precision)
+            # float32 stays float32 (each consumer sums in float64; no converted copy)
+            fm = np.asarray(fm)
+            if fm.dtype != np.float32:
+                fm = fm.astype(np.float64, copy=False)
+            fm = np.broadcast_to(fm, (theta.shape[0], d.f.size))
             scale = natural.get(f"scale_{d.channel}")
             out.append(fm if scale is None else fm * scale[:, None])
         return out
@@ -304,7 +352,7 @@ class Likelihood:
 
     def _evaluate_linearised(self, i: int, params: dict, shifts: dict) -> np.ndarray:
         wi0, wo0, ratio0, grads, delta0 = self._angle_ref[i]
-        fm = np.asarray(self.model.evaluate(params, wi0, wo0), dtype=np.float64) * ratio0
+        fm = self.model.evaluate(params, wi0, wo0, precision=self.precision) * ratio0
         lin = 1.0
         for arm, g in grads.items():
             lin = lin + (shifts[arm] - delta0[arm]) * g

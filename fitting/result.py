@@ -27,6 +27,11 @@ linear map applied to the chain's draws, in the sampled space), and ``regions``:
 error per (θ_h, θ_d) region — ``label``, ``regions`` (0…8), ``n``, ``median``, ``p2.5``,
 ``p16``, ``p84``, ``p97.5``, ``quantiles`` (at 0, 2.5, … 100 %).
 
+``diagnostics.precision`` (fits with MCMC since issue 23): ``mcmc``, the precision the model was
+evaluated in while sampling ("float32" or "float64", fitting.likelihood.choose_precision), and
+``rounding_lnl``, the largest change of ln L float32 made at the points checked (float32 only
+below 0.01; null for a model without float32 kernels).
+
 Values are natural units (not the log used for sampling). Non-finite numbers are written as
 null (JSON has no NaN).
 """

@@ -34,7 +34,7 @@ GOOD = {"chi2", "dof", "chi2_red", "aic", "bic", "n"}
 # "converged" rests on.
 OPTIONAL_TOP = {"verdicts"}
 # budget: fitting.budget notes; mismatch: fitting.mismatch (widening, model error per region)
-OPTIONAL_DIAG = {"converged_because", "failed_criteria", "budget", "mismatch"}
+OPTIONAL_DIAG = {"converged_because", "failed_criteria", "budget", "mismatch", "precision"}
 VERDICT = {"name", "status", "reason", "advice"}
 
 
@@ -76,6 +76,8 @@ def test_json_contract_and_roundtrip(tmp_path):
     for key in ("tau", "ess", "rhat"):
         assert set(d["diagnostics"][key]) == set(d["parameters"])
     assert set(d["goodness"]) == GOOD
+    # Lambert has no float32 kernels: its MCMC ran in float64, and says so
+    assert d["diagnostics"]["precision"]["mcmc"] == "float64"
     assert d["model"] == "lambert" and d["channels"] == ["R", "G"]
     assert d["n_samples"] == 400 and d["goodness"]["n"] == 400
     assert d["goodness"]["dof"] == 400 - 3
