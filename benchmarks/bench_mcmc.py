@@ -18,6 +18,7 @@ import numpy as np
 
 from fitting import models
 from fitting.directions import spherical_to_vector
+from fitting.fit import _precision_probes
 from fitting.likelihood import Likelihood
 from fitting.lsq import fit_least_squares
 from fitting.mcmc import McmcOptions, run_mcmc
@@ -97,6 +98,7 @@ def main(argv: list[str] | None = None) -> dict:
     lsq = fit_least_squares(lik, seed=args.seed)
     t_lsq = time.perf_counter() - t0
     lik.set_discrepancy_reference(lsq.x)  # as fit_samples does
+    precision, rounding = lik.choose_precision(_precision_probes(lik, lsq, lsq.x, args.seed))
     scale = np.sqrt(np.clip(np.diag(lsq.cov), 1e-12, None)) if lsq.cov is not None else None
     x0 = lsq.x.copy()
     if not args.no_discrepancy:
@@ -113,6 +115,7 @@ def main(argv: list[str] | None = None) -> dict:
         scale=scale,
     )
     per_step_vec = res.wall_time_s / res.iterations
+    lik.precision = "float64"  # as fit_samples: float32 for the sampling only
 
     base = plain_log_prob(lik)
     t0 = time.perf_counter()
@@ -137,6 +140,7 @@ def main(argv: list[str] | None = None) -> dict:
         "parameters": space.ndim,
         "walkers": args.walkers,
         "lsq_s": t_lsq,
+        "model_precision": f"{precision} (ln L rounding {rounding:.1e})",
         "mcmc_s_to_target": res.wall_time_s,
         "steps": res.iterations,
         "stop_reason": res.stop_reason,

@@ -17,6 +17,10 @@ different sets); its rows use kd = 0, ks = 1 (roughconductor has no diffuse lobe
 specular_reflectance = 1) and φ₀ = 0 (Mitsuba's α_u lies along +x). Its time is a replay of a
 frozen function (``dr.freeze``): input checks, one recorded kernel launch and the wait for it —
 no Python tracing, no compilation; "Mi krnl" is the kernel's own execution time.
+gonio's float32 kernels (``evaluate(precision="float32")``, what its MCMC runs where the rounding
+is negligible: fitting.likelihood) are timed too ("g f32") and checked against Mitsuba the same
+way; g/Mi compares like with like: float32 with float32 where gonio has it (marked *), else
+gonio's float64. g/JAX compares float64 with float64.
 The roofline column is this CPU's limit for the operations each model's numba path performs
 (counted in OPS, costed by the microbenchmarks printed first).
 """
@@ -82,8 +86,9 @@ CASES: list[Case] = [
 # -- roofline: operations per evaluation ----------------------------------------------------------
 # Counted by reading the numba path each model takes for per-set parameters ((W, 1) arrays), as of
 # this writing: fitting.kernels (_lobe_row/_lobe_block; _geometry_row and the _ts_block stages
-# _stage_d, _stage_g, _stage_f), fitting.anisotropic (_aniso_row, _block_per_set with _stage_q,
-# _stage_d, _stage_g) and fitting.models.Lambert._numba. Conventions:
+# _stage_d, _stage_g, _stage_f), fitting.anisotropic (_aniso_row, _block_per_set with _stage_d,
+# _stage_g_frac) and fitting.models.Lambert._numba, in float64 (the roof column is gonio's
+# float64). Conventions:
 #   addmul  one add, sub, mul, compare, select, min or max (all ~1 vector µop on x86)
 #   fma     one explicit a*b + c pattern (the kernels' njit does not fuse it — IEEE rounding keeps
 #           serial and parallel twins identical — so the microbenchmark below, compiled by the
@@ -103,17 +108,16 @@ _G_RATIONAL = {"addmul": 23, "fma": 6}  # per side u = m s, numerator, denominat
 # selects; its one divide is folded into the combine's (fitting.kernels._stage_g_frac)
 _G_GGX = {"addmul": 9, "fma": 2, "sqrt": 2}  # 1/((ci + Ri)(co + Ro)), Ri = √(ci² + m²si²); the
 # divide folded into the combine's
-# F as a fraction (fitting.kernels._stage_f_frac); torrance-sparrow folds its divide into the
-# combine's, the anisotropic model (stage_fresnel) divides in the stage
+# F as a fraction (fitting.kernels._stage_f_frac); both torrance-sparrow kernels fold its divide
+# into the combine's
 _F_DIELECTRIC = {"addmul": 14, "fma": 4, "sqrt": 1}  # Rs + Rp over one denominator, TIR select
 _F_CONDUCTOR = {"addmul": 19, "fma": 2, "sqrt": 2}  # Möller's real form, one denominator
-_STAGE_DIVIDE = {"div": 1}
 _COMBINE = {"addmul": 5, "fma": 1, "div": 1}  # kd/π + ks·(d·g·f)/(gden·fden), valid select
-_COMBINE_ANISO = {"addmul": 4, "fma": 1}  # kd/π + ks·(d·g·f), valid select
-_Q_ANISO = {"addmul": 8, "fma": 3, "div": 1}  # rotate s by φ₀, q = (x'²/αx² + y'²/αy²)/sz²
-_D_GGX_ANISO = {"addmul": 4, "div": 1}  # r = (1+t2)/(1+q), r²·dn
-_G_GGX_ANISO = {"addmul": 15, "fma": 8, "sqrt": 2, "div": 1}  # rotate ω_i, ω_o, u² per side,
-# 1/((ci + √(ci² + ui²))(co + √(co² + uo²)))
+_D_GGX_ANISO = {"addmul": 12, "fma": 3, "div": 1}  # rotate s by φ₀, Q = x'²/αx² + y'²/αy²,
+# r = |s|²/(sz² + Q) (no q: one divide), select, r²·dn
+_G_GGX_ANISO = {"addmul": 14, "fma": 6, "sqrt": 2}  # u² = |M ω|² per side (M: the rotation by φ₀
+# times α, per set), (ci + √(ci² + ui²))(co + √(co² + uo²)), selects; the divide folded into the
+# combine's
 
 
 def _sum(*parts: dict) -> dict:
@@ -147,17 +151,13 @@ OPS: dict[str, dict[str, dict[str, int]]] = {
         "set": _sum(_D_GGX, _G_GGX, _F_CONDUCTOR, _COMBINE),
         "pair": _TS_PAIR,
     },
-    # _block_per_set: _stage_q, _stage_d (GGX), _stage_g (GGX separable), stage_fresnel, combine
+    # _block_per_set: _stage_d (GGX), _stage_g_frac (GGX separable), stage_fresnel_frac, combine
     "torrance-sparrow-anisotropic ggx,smith": {
-        "set": _sum(
-            _Q_ANISO, _D_GGX_ANISO, _G_GGX_ANISO, _F_DIELECTRIC, _STAGE_DIVIDE, _COMBINE_ANISO
-        ),
+        "set": _sum(_D_GGX_ANISO, _G_GGX_ANISO, _F_DIELECTRIC, _COMBINE),
         "pair": _ANISO_PAIR,
     },
     "torrance-sparrow-anisotropic ggx,smith,conductor": {
-        "set": _sum(
-            _Q_ANISO, _D_GGX_ANISO, _G_GGX_ANISO, _F_CONDUCTOR, _STAGE_DIVIDE, _COMBINE_ANISO
-        ),
+        "set": _sum(_D_GGX_ANISO, _G_GGX_ANISO, _F_CONDUCTOR, _COMBINE),
         "pair": _ANISO_PAIR,
     },
 }
@@ -505,6 +505,7 @@ def _float32_params(params: dict, row: int, case: Case) -> dict[str, float]:
 class Row:
     label: str
     gonio_ns: float
+    gonio32_ns: float | None = None  # the float32 kernels, where the model has them
     jax_ns: float | None = None
     jax_ok: bool | None = None
     mi_ns: float | None = None
@@ -520,6 +521,11 @@ def run_case(case, wi, wo, rng, args, jax_mod, mitsuba, costs, threads) -> Row:
     ours = model.evaluate(params, wi, wo)
     gonio_s, _ = _best(lambda: model.evaluate(params, wi, wo), args.repeat)
     row = Row(case.label, gonio_s / evals * 1e9)
+    if model.float32:
+        gonio32_s, _ = _best(
+            lambda: model.evaluate(params, wi, wo, precision="float32"), args.repeat
+        )
+        row.gonio32_ns = gonio32_s / evals * 1e9
     if case.label in OPS:
         row.roof_ns = roofline_ns(OPS[case.label], costs, threads, args.w)
     if jax_mod is not None:
@@ -559,10 +565,14 @@ def _run_mitsuba(case, model, params, wi, wo, mitsuba, args) -> tuple[bool, tupl
     fn = mitsuba.frozen_eval()
     cos_o = wo32[:, 2].astype(np.float64)
     f_mi = np.asarray(fn(bsdf, lanes_i, lanes_o), dtype=np.float64).reshape(args.w, args.n) / cos_o
-    ours = model.evaluate(p, wi32.astype(np.float64), wo32.astype(np.float64))
-    ok, detail = check_mitsuba(f_mi, ours, cos_o)
-    status = "ok" if ok else "!!! FAILED — no ratio for this row !!!"
-    print(f"  check Mitsuba {case.label:<48} {detail}: {status}")
+    wi64, wo64 = wi32.astype(np.float64), wo32.astype(np.float64)
+    ok = True
+    for precision in ("float64", "float32") if model.float32 else ("float64",):
+        ours = model.evaluate(p, wi64, wo64, precision=precision).astype(np.float64)
+        ok_one, detail = check_mitsuba(f_mi, ours, cos_o)
+        ok = ok and ok_one
+        status = "ok" if ok_one else "!!! FAILED — no ratio for this row !!!"
+        print(f"  check Mitsuba {case.label:<48} gonio {precision}: {detail}: {status}")
     wall, kernel, recordings = mitsuba.time(fn, (bsdf, lanes_i, lanes_o), args.repeat)
     if recordings != 1:
         print(f"  note: Mitsuba {case.label} was recorded {recordings}× (timing includes tracing)")
@@ -599,17 +609,20 @@ def print_rows(rows: list[Row]) -> None:
         "\nns per sample × parameter set (best wall time); ratio = gonio / peer (< 1: gonio "
         "faster); roof = gonio / roofline (4 = 4× slower than this CPU's limit)"
     )
+    print("g/Mi*: gonio's float32 kernels against Mitsuba's float32 (like with like)")
     head = (
-        f"{'model':<48} {'gonio':>7} {'JAX':>7} {'g/JAX':>6} {'Mitsuba':>8} {'Mi krnl':>8} "
-        f"{'g/Mi':>6} {'roofln':>7} {'roof':>6}"
+        f"{'model':<48} {'gonio':>7} {'g f32':>7} {'JAX':>7} {'g/JAX':>6} {'Mitsuba':>8} "
+        f"{'Mi krnl':>8} {'g/Mi':>7} {'roofln':>7} {'roof':>6}"
     )
     print(head)
     for r in rows:
         roof = r.gonio_ns / r.roof_ns if r.roof_ns else None
+        ours_mi = r.gonio32_ns if r.gonio32_ns is not None else r.gonio_ns
+        star = "*" if r.gonio32_ns is not None and r.mi_ns else " "
         print(
-            f"{r.label:<48} {r.gonio_ns:7.2f} {_fmt(r.jax_ns, 7)} "
+            f"{r.label:<48} {r.gonio_ns:7.2f} {_fmt(r.gonio32_ns, 7)} {_fmt(r.jax_ns, 7)} "
             f"{_ratio(r.gonio_ns, r.jax_ns, r.jax_ok, 6)} {_fmt(r.mi_ns, 8)} "
-            f"{_fmt(r.mi_kernel_ns, 8)} {_ratio(r.gonio_ns, r.mi_ns, r.mi_ok, 6)} "
+            f"{_fmt(r.mi_kernel_ns, 8)} {_ratio(ours_mi, r.mi_ns, r.mi_ok, 6)}{star} "
             f"{_fmt(r.roof_ns, 7, '.3f')} {_fmt(roof, 6, '.1f')}"
         )
 
@@ -643,7 +656,7 @@ def main(argv: list[str] | None = None) -> None:
         mitsuba = MitsubaPeer(threads)
     print(
         f"N = {args.n}, W = {args.w}, threads = {threads}{note}; gonio: numba "
-        f"{numba.__version__} ({numba.threading_layer()}), float64"
+        f"{numba.__version__} ({numba.threading_layer()}), float64 (and float32 where it has it)"
         + (f"; JAX {jax_mod.jax.__version__} float64" if jax_mod else "")
         + (
             f"; Mitsuba {mitsuba.mi.__version__} {_MITSUBA_VARIANT} (float32; one parameter "

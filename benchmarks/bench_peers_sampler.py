@@ -101,7 +101,7 @@ from bench_mcmc import TRUTH, synthetic_table
 
 from fitting import models
 from fitting.directions import reflect, spherical_to_vector, vector_to_spherical
-from fitting.fit import _best_discrepancy, _walkers_covariance
+from fitting.fit import _best_discrepancy, _precision_probes, _walkers_covariance
 from fitting.likelihood import Likelihood
 from fitting.lsq import fit_least_squares
 from fitting.mcmc import McmcOptions, initial_ball, run_mcmc
@@ -194,12 +194,17 @@ def run_gonio(table: SampleTable, target_ess: float, walkers: int, seed: int) ->
     space = ParameterSpace.build(model, ["R", "G", "B"], discrepancy=True)
     lik = Likelihood(model, table, space)
     # numba's kernels are compiled once per machine (cache=True); load them before the clock
-    lik.log_prob(np.tile(np.mean(space.bounds, axis=0), (2, 1)))
+    for precision in ("float32", "float64"):
+        lik.precision = precision
+        lik.log_prob(np.tile(np.mean(space.bounds, axis=0), (2, 1)))
     t0 = time.perf_counter()
     lsq = fit_least_squares(lik, seed=seed)
     lik.set_discrepancy_reference(lsq.x)
     x_start = _best_discrepancy(lik, lsq.x)
     cov = None if lsq.cov is None else _walkers_covariance(lsq.cov, space.specs, x_start, None)
+    # the model's precision for the sampling, as fit_samples chooses it (fitting.likelihood)
+    precision, diff = lik.choose_precision(_precision_probes(lik, lsq, lsq.x, seed))
+    print(f"  gonio samples with the model in {precision} (ln L rounding {diff:.1e} at 17 points)")
     lsq_s = time.perf_counter() - t0
     res = run_mcmc(
         lik.log_prob,
@@ -209,6 +214,7 @@ def run_gonio(table: SampleTable, target_ess: float, walkers: int, seed: int) ->
         rng=seed,
         scale=cov,
     )
+    lik.precision = "float64"  # as fit_samples: float32 for the sampling only
     kept = res.chain.shape[0]
     return GonioRun(
         lik,
