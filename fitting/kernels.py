@@ -1012,12 +1012,12 @@ def constant_above(value, above, log_out, out):
     """out[w, j] = value[w] (or value[w, j]; its log if ``log_out``) where ``above[j]``, else 0
     (−inf): Lambert's f = kd/π for every (set, pair) in one store each — a store-bound loop that
     numpy's divide-then-masked-assignment took two passes and a gather for. ``value`` is (W, 1)
-    or (W, N) float64, already kd/π."""
+    or (W, N) in out's precision (float64 or float32), already kd/π."""
     cs = 0 if value.shape[1] == 1 else 1
     if log_out:
         with np.errstate(divide="ignore"):
             value = np.log(value)  # once per value, not per (set, pair)
-    fill = _NINF if log_out else 0.0
+    fill = out.dtype.type(_NINF if log_out else 0.0)  # a float64 fill would widen the select
     _dispatch("constant", _constant_par, _constant_ser, out.size, value, cs, above, fill, out)
 
 

@@ -42,7 +42,8 @@ Two backends: ``backend="numba"`` (default; fused kernels in :mod:`fitting.kerne
 
 Two precisions of the numba backend: float64 (default: least squares, whose finite-difference
 steps of 1.5e-8 relative are below float32's resolution) and, for the models that have the
-kernels (``Model.float32``: torrance-sparrow and its anisotropic twin), ``precision="float32"``:
+kernels (``Model.float32``: lambert, torrance-sparrow and its anisotropic twin),
+``precision="float32"``:
 the same stages in single precision, about twice as fast (twice the vector lanes, cheaper
 divides and square roots). Where the formulas are well conditioned the values are within
 (64 + 3x) float32 ulps of float64 (x: Beckmann's exponent; tests/test_float32_kernels.py); a
@@ -229,6 +230,8 @@ def _combine(kd, spec, log):
 class Lambert(Model):
     """f = kd/π (ρ = kd is the albedo; seed lecture "Diffuse BRDF")."""
 
+    float32 = True
+
     def __init__(self, **options):
         if options:
             raise TypeError(f"lambert takes no options; got {sorted(options)}")
@@ -248,7 +251,8 @@ class Lambert(Model):
         return f
 
     def _numba(self, v, wi, wo, log, out):
-        kdpi = np.ascontiguousarray(np.divide(v["kd"], np.pi), dtype=np.float64)
+        # kd/π in out's precision: float32 halves the bytes of this store-bound loop
+        kdpi = np.ascontiguousarray(np.divide(v["kd"], np.pi), dtype=out.dtype)
         _k.constant_above(kdpi, _above(wi, wo), log, out)
 
 

@@ -96,7 +96,9 @@ def test_float32_within_rounding_of_the_numpy_reference(options):
 
 
 @pytest.mark.parametrize(
-    "name", ["torrance-sparrow", "torrance-sparrow-anisotropic"], ids=["iso", "aniso"]
+    "name",
+    ["lambert", "torrance-sparrow", "torrance-sparrow-anisotropic"],
+    ids=["lambert", "iso", "aniso"],
 )
 def test_float32_every_configuration_is_sound(name):
     """Every configuration with float32 kernels, at parameters across the priors' whole box:
@@ -133,8 +135,9 @@ def test_float32_is_only_for_what_has_kernels():
     assert ts.evaluate(p, wi, wo, precision="float32").dtype == np.float32
     per_sample = dict(p, m=rng.uniform(0.1, 0.3, (3, 50)))
     assert ts.evaluate(per_sample, wi, wo, precision="float32").dtype == np.float64
-    lam = models.get("lambert")
-    assert lam.evaluate({"kd": 0.5}, wi, wo, precision="float32").dtype == np.float64
+    phong = models.get("phong")
+    phong_params = {"kd": 0.5, "ks": 0.3, "n": 20.0}
+    assert phong.evaluate(phong_params, wi, wo, precision="float32").dtype == np.float64
     with pytest.raises(ValueError, match="precision"):
         ts.evaluate(p, wi, wo, precision="half")
 
@@ -189,13 +192,14 @@ def test_likelihood_takes_float32_only_where_its_rounding_is_negligible():
     choice, diff = lik.choose_precision(probes)
     assert choice == "float64" and lik.precision == "float64" and diff >= F32_LNL_LIMIT
     # no float32 kernels: float64, and no difference measured
-    lam = models.get("lambert")
+    phong = models.get("phong")
     table = SampleTable(
         np.full(5, 0.3), np.zeros(5), np.full(5, 0.4), np.zeros(5), np.full(5, "R"),
         np.full(5, 0.1), np.full(5, 0.01), np.zeros(5, np.int32),
     )  # fmt: skip
-    lik = Likelihood(lam, table, ParameterSpace.build(lam, ["R"], discrepancy=False))
-    choice, diff = lik.choose_precision(np.zeros((1, 1)))
+    space = ParameterSpace.build(phong, ["R"], discrepancy=False)
+    lik = Likelihood(phong, table, space)
+    choice, diff = lik.choose_precision(np.mean(space.bounds, axis=0))
     assert choice == "float64" and np.isnan(diff)
 
 
