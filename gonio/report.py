@@ -160,11 +160,27 @@ def _diagnostics_parts(fit: dict) -> list[str]:
         f"{_fmt(diag.get('converged'))} ({html.escape(str(why))})</p>"
     )
     parts.append(_table(["parameter", "τ [steps]", "ESS", "R-hat"], drows))
+    parts.extend(_precision_parts(diag.get("precision")))
     good = fit.get("goodness", {})
     if good:
         parts.append("<h3>Goodness of fit</h3>")
         parts.append(_table(list(good), [list(good.values())]))
     return parts
+
+
+def _precision_parts(precision: dict | None) -> list[str]:
+    """One line on the precision the model was evaluated in while sampling (fits since
+    issue 23; fitting.likelihood.choose_precision)."""
+    if not precision or not precision.get("mcmc"):
+        return []
+    rounding = precision.get("rounding_lnl")
+    if precision["mcmc"] == "float32":
+        why = f"ln L within {rounding:.1g} of float64 at the points checked"
+    elif rounding is None or rounding != rounding:  # JSON null or NaN: no float32 kernels
+        why = "this model has no float32 kernels"
+    else:
+        why = f"float32 would have moved ln L by {rounding:.2g} ≥ 0.01"
+    return [f"<p>model evaluated in {html.escape(precision['mcmc'])} while sampling ({why})</p>"]
 
 
 def _hemisphere_parts(samples, fit: dict) -> list[str]:

@@ -91,6 +91,8 @@ def test_report_has_every_section(run_dir: Path) -> None:
     assert "Mitsuba 3 material (XML)" in html and "&lt;bsdf version=" in html
     for cell in ("elpd_loo", "p_loo", "WAIC", "ΔELPD", "AIC", "BIC", "lab time", "R-hat"):
         assert cell in html, cell
+    # the precision the model was sampled in, in words (fitting.likelihood.choose_precision)
+    assert re.search(r"model evaluated in float(32|64) while sampling \(", html)
     # slices, residual map, polar, hemisphere, albedo, traces, marginals, corner, preview,
     # sample map, light monitor: eleven PNGs that decode.
     images = _images(html)
