@@ -98,11 +98,11 @@ def main(argv: list[str] | None = None) -> dict:
     lsq = fit_least_squares(lik, seed=args.seed)
     t_lsq = time.perf_counter() - t0
     lik.set_discrepancy_reference(lsq.x)  # as fit_samples does
-    precision, rounding = lik.choose_precision(_precision_probes(lik, lsq, lsq.x, args.seed))
     scale = np.sqrt(np.clip(np.diag(lsq.cov), 1e-12, None)) if lsq.cov is not None else None
     x0 = lsq.x.copy()
     if not args.no_discrepancy:
         x0[space.index("discrepancy")] = np.log(2e-4)
+    precision, rounding = lik.choose_precision(_precision_probes(lik, lsq, x0, args.seed))
     lo, hi = space.bounds
     res = run_mcmc(
         lik.log_prob,

@@ -203,7 +203,7 @@ def run_gonio(table: SampleTable, target_ess: float, walkers: int, seed: int) ->
     x_start = _best_discrepancy(lik, lsq.x)
     cov = None if lsq.cov is None else _walkers_covariance(lsq.cov, space.specs, x_start, None)
     # the model's precision for the sampling, as fit_samples chooses it (fitting.likelihood)
-    precision, diff = lik.choose_precision(_precision_probes(lik, lsq, lsq.x, seed))
+    precision, diff = lik.choose_precision(_precision_probes(lik, lsq, x_start, seed))
     print(f"  gonio samples with the model in {precision} (ln L rounding {diff:.1e} at 17 points)")
     lsq_s = time.perf_counter() - t0
     res = run_mcmc(

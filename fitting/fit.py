@@ -261,9 +261,9 @@ def fit_samples(
         coords = sampler_coordinates(space, _model, x_lsq)
         # The model in float32 where its rounding is negligible beside the noise (about twice
         # as fast; fitting.likelihood), for the sampling only: everything else stays float64.
-        choice, diff = lik.choose_precision(_precision_probes(lik, lsq, x_lsq, opt.seed))
-        precision = {"mcmc": choice, "rounding_lnl": diff}
         try:
+            choice, diff = lik.choose_precision(_precision_probes(lik, lsq, x_lsq, opt.seed))
+            precision = {"mcmc": choice, "rounding_lnl": diff, "reason": lik.precision_reason}
             res = _run_ensembles(lik, lsq, x_lsq, opt, rng, h5, progress, coords)
             if opt.converge is not None:
                 log_prob = lik.log_prob if coords is None else coords.wrap(lik.log_prob)

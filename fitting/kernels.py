@@ -257,17 +257,18 @@ def _exp_neg(x):
 
 # The float32 twin for the single-precision kernels (MCMC's likelihood, `Model.evaluate(...,
 # precision="float32")`): the same reduction with Cody-Waite constants split for float32
-# (ln2_hi has 12 significant bits, so k·ln2_hi is exact for k < 2¹²) and a degree-7 Taylor
-# polynomial (truncation |r|⁸/8! ≤ 5e-9 relative for |r| ≤ ln2/2, below float32's 6e-8). 2^−k is
-# made from its exponent bits, not gathered from a table: a 16-lane gather measured 7× slower
-# than the whole rest of the function. Every constant is a np.float32: numba widens
-# float32 ⊕ a Python float (or an int) to float64, which would make the loops float64 again.
-# Denormals are avoided, not only for accuracy: an operation with a denormal operand or result
-# takes a microcode assist on x86 (~100 cycles for the whole vector), and a Beckmann lobe's tail
-# made the float32 kernel 2.5× slower than the float64 one. So exp(−x) is taken as 0 from
-# x = 86 (e^−86 = 4.4e-38, just above float32's smallest normal 1.2e-38; k ≤ 125 there, so
-# p·2^−k stays normal): an absolute change below 4.4e-38, where the float64 kernel's cut is at
-# 745.2 (its denormals start at 708).
+# (ln2_hi has 15 significant bits, so k·ln2_hi is exact for k < 2⁹; k ≤ 124 here) and a
+# degree-7 Taylor polynomial (truncation |r|⁸/8! ≤ 5e-9 relative for |r| ≤ ln2/2, below
+# float32's 6e-8). 2^−k is made from its exponent bits, not gathered from a table: a 16-lane
+# gather measured 7× slower than the whole rest of the function. Every constant is a
+# np.float32: numba widens float32 ⊕ a Python float (or an int) to float64, which would make the
+# loops float64 again.
+# Denormals are avoided in the exp (the products after it can still meet one, rarely), not only
+# for accuracy: an operation with a denormal operand or result takes a microcode assist on x86
+# (~100 cycles for the whole vector), and a Beckmann lobe's tail made the float32 kernel 2.5×
+# slower than the float64 one. So exp(−x) is taken as 0 from x = 86 (e^−86 = 4.4e-38, just
+# above float32's smallest normal 1.2e-38; k ≤ 124 there, so p·2^−k stays normal): an absolute
+# change below 4.4e-38, where the float64 kernel's cut is at 745.2 (its denormals start at 708).
 _F32 = np.float32
 _LN2_HI_32 = _F32(0.693145751953125)
 _LN2_LO_32 = _F32(1.428606765330187045e-06)
@@ -341,11 +342,14 @@ def _exp_underflow_impl(x):
 
 @njit(cache=True)
 def exp_neg(x):
-    """exp(−x) for an array x of values in [0, 745.2) ([0, 86) in float32) by the
-    vectorisable kernel formula, in x's precision."""
+    """exp(−x) for an array x ≥ 0 by the vectorisable kernel formula, in x's precision, as the
+    kernels take it: 0 from x = 745.2 (float64) or 86 (float32; see _exp_neg32)."""
     out = np.empty_like(x)
+    zero = out.dtype.type(0.0)
     for i in range(x.size):
-        out.flat[i] = exp_neg_any(x.flat[i])
+        v = x.flat[i]
+        e = exp_neg_any(min(v, exp_clamp(v)))
+        out.flat[i] = e if v < exp_underflow(v) else zero
     return out
 
 
@@ -419,6 +423,11 @@ def microfacet_geometry(wi, wo, parallel=False, dtype=np.float64):
     """
     geo = np.zeros((_G_COLS, wi.shape[0]), dtype)
     (_microfacet_geometry_par if parallel else _microfacet_geometry_ser)(wi, wo, geo)
+    if geo.dtype == np.float32:
+        # tan²θ_h overflows float32 (to inf, then GGX's (1 + t²)/(1 + t²/m²) is inf/inf) when
+        # both directions are within 1e-19 of the horizon; at 1e30 every D has its limit (GGX
+        # r → m² to float32's precision, Beckmann 0), and t²/m² stays finite for m ≥ 1e-3.
+        np.minimum(geo[_G_T2], np.float32(1e30), out=geo[_G_T2])
     return geo
 
 

@@ -40,7 +40,7 @@ Precision: the model is evaluated in float64 unless ``precision`` is set to "flo
 finite-difference steps being below float32's resolution). The sums are float64 either way.
 float32 rounds f̂_j by a few float32 ulps (6e-8) where the model is well conditioned, by more
 where it is not (a conductor's Fresnel term subtracts nearly equal numbers for a noble metal;
-an anisotropic lobe's rotation by φ₀ cancels for a narrow α: up to ~1e-4 relative at the
+an anisotropic lobe's rotation by φ₀ cancels for a narrow α: up to ~5e-4 relative at the
 priors' edges), and a change δ_j of f̂_j moves ln L by ≈ Σ_j z_j δ_j/σ_j (z_j = r_j/√v_j). So
 no fixed bound decides: :meth:`choose_precision` evaluates ln L in both precisions at points
 where the sampler will go (the least-squares optimum and draws of its Laplace approximation)
@@ -240,6 +240,7 @@ class Likelihood:
         self._f_ref: list[np.ndarray] | None = None  # discrepancy reference f̃, per channel
         #: The model's precision in :meth:`predict` ("float64", or "float32": choose_precision).
         self.precision = "float64"
+        self.precision_reason = "float64 by default"
         self._angle_ref: tuple | None = None  # arm-zero linearisation (set_angle_reference)
         # Constant of the Student-t density, precomputed once.
         self._t_const = float(
@@ -251,19 +252,36 @@ class Likelihood:
         """Use float32 for the model if it has the kernels for it and ln L in float32 differs
         from float64 by less than F32_LNL_LIMIT at every one of ``probes`` (K, D), points in the
         sampled space where the sampler will go; else float64. Returns (the choice, the largest
-        difference; NaN for a model without float32 kernels) and sets ``precision``."""
+        difference: NaN for a model without float32 kernels, inf where float32 changes which
+        points have a finite ln L or none has) and sets ``precision`` and ``precision_reason``
+        (one line, for the fit's diagnostics and the report)."""
         self.precision = "float64"
         if not getattr(self.model, "float32", False):
+            self.precision_reason = f"{self.model.name} has no float32 kernels"
             return self.precision, float("nan")
         probes = np.atleast_2d(np.asarray(probes, dtype=np.float64))
-        ll64 = self.log_likelihood(probes)
-        self.precision = "float32"
-        ll32 = self.log_likelihood(probes)
-        same_support = np.array_equal(np.isfinite(ll64), np.isfinite(ll32))
-        ok = np.isfinite(ll64)
-        diff = float(np.max(np.abs(ll32[ok] - ll64[ok]))) if ok.any() else float("inf")
-        if not (same_support and diff < F32_LNL_LIMIT):
+        try:
+            ll64 = self.log_likelihood(probes)
+            self.precision = "float32"
+            ll32 = self.log_likelihood(probes)
+        finally:
             self.precision = "float64"
+        ok = np.isfinite(ll64)
+        n = len(probes)
+        if not ok.any():
+            self.precision_reason = f"ln L is not finite at any of the {n} points checked"
+            return self.precision, float("inf")
+        if not np.array_equal(ok, np.isfinite(ll32)):
+            self.precision_reason = f"float32 changed which of the {n} points checked are finite"
+            return self.precision, float("inf")
+        diff = float(np.max(np.abs(ll32[ok] - ll64[ok])))
+        if diff < F32_LNL_LIMIT:
+            self.precision = "float32"
+            self.precision_reason = f"ln L within {diff:.1g} of float64 at the {n} points checked"
+        else:
+            self.precision_reason = (
+                f"float32 would move ln L by {diff:.2g} ≥ {F32_LNL_LIMIT} (many or precise rows)"
+            )
         return self.precision, diff
 
     def set_discrepancy_reference(self, theta: np.ndarray | None) -> None:

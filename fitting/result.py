@@ -30,7 +30,8 @@ error per (θ_h, θ_d) region — ``label``, ``regions`` (0…8), ``n``, ``media
 ``diagnostics.precision`` (fits with MCMC since issue 23): ``mcmc``, the precision the model was
 evaluated in while sampling ("float32" or "float64", fitting.likelihood.choose_precision), and
 ``rounding_lnl``, the largest change of ln L float32 made at the points checked (float32 only
-below 0.01; null for a model without float32 kernels).
+below 0.01; null for a model without float32 kernels or where float32 changed which points are
+finite), and ``reason``, the choice in one line.
 
 Values are natural units (not the log used for sampling). Non-finite numbers are written as
 null (JSON has no NaN).

@@ -173,14 +173,9 @@ def _precision_parts(precision: dict | None) -> list[str]:
     issue 23; fitting.likelihood.choose_precision)."""
     if not precision or not precision.get("mcmc"):
         return []
-    rounding = precision.get("rounding_lnl")
-    if precision["mcmc"] == "float32":
-        why = f"ln L within {rounding:.1g} of float64 at the points checked"
-    elif rounding is None or rounding != rounding:  # JSON null or NaN: no float32 kernels
-        why = "this model has no float32 kernels"
-    else:
-        why = f"float32 would have moved ln L by {rounding:.2g} ≥ 0.01"
-    return [f"<p>model evaluated in {html.escape(precision['mcmc'])} while sampling ({why})</p>"]
+    why = precision.get("reason") or ""
+    why = f" ({html.escape(why)})" if why else ""
+    return [f"<p>model evaluated in {html.escape(precision['mcmc'])} while sampling{why}</p>"]
 
 
 def _hemisphere_parts(samples, fit: dict) -> list[str]:

@@ -92,7 +92,7 @@ def test_report_has_every_section(run_dir: Path) -> None:
     for cell in ("elpd_loo", "p_loo", "WAIC", "ΔELPD", "AIC", "BIC", "lab time", "R-hat"):
         assert cell in html, cell
     # the precision the model was sampled in, in words (fitting.likelihood.choose_precision)
-    assert re.search(r"model evaluated in float(32|64) while sampling \(", html)
+    assert re.search(r"model evaluated in float(32|64) while sampling \([^)]*points checked", html)
     # slices, residual map, polar, hemisphere, albedo, traces, marginals, corner, preview,
     # sample map, light monitor: eleven PNGs that decode.
     images = _images(html)
