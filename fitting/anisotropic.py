@@ -322,12 +322,16 @@ def _stage_q(geo, j0, qbuf, c, s, iax2, iay2):
     g_sz = geo[_A_SZ, j0 : j0 + qbuf.size]
     zero = qbuf.dtype.type(0.0)
     for i in range(qbuf.size):
-        sx = g_sx[i]
-        sy = g_sy[i]
         sz = g_sz[i]
-        xr = c * sx + s * sy
-        yr = -s * sx + c * sy
-        qbuf[i] = (xr * xr * iax2 + yr * yr * iay2) / (sz * sz) if sz > zero else zero
+        qbuf[i] = _q_num(g_sx[i], g_sy[i], c, s, iax2, iay2) / (sz * sz) if sz > zero else zero
+
+
+@njit(cache=True)
+def _q_num(sx, sy, c, s, iax2, iay2):
+    """Q = s_x'²/α_x² + s_y'²/α_y², s' = s rotated by φ₀ (c = cos φ₀, s = sin φ₀); q = Q/s_z²."""
+    xr = c * sx + s * sy
+    yr = -s * sx + c * sy
+    return xr * xr * iax2 + yr * yr * iay2
 
 
 @njit(cache=True)
@@ -344,12 +348,8 @@ def _stage_d(geo, j0, dbuf, c, s, iax2, iay2, dn, dist):
     one, zero = dbuf.dtype.type(1.0), dbuf.dtype.type(0.0)
     if dist == _k.DIST_BECKMANN:
         for i in range(dbuf.size):
-            sx = g_sx[i]
-            sy = g_sy[i]
             sz = g_sz[i]
-            xr = c * sx + s * sy
-            yr = -s * sx + c * sy
-            x = (xr * xr * iax2 + yr * yr * iay2) / (sz * sz) if sz > zero else zero
+            x = _q_num(g_sx[i], g_sy[i], c, s, iax2, iay2) / (sz * sz) if sz > zero else zero
             t2 = g_t2[i]
             e = _k.exp_neg_any(min(x, _k.exp_clamp(x)))
             dbuf[i] = e * (one + t2) * (one + t2) * dn if x < _k.exp_underflow(x) else zero
@@ -358,9 +358,7 @@ def _stage_d(geo, j0, dbuf, c, s, iax2, iay2, dn, dist):
             sx = g_sx[i]
             sy = g_sy[i]
             sz2 = g_sz[i] * g_sz[i]
-            xr = c * sx + s * sy
-            yr = -s * sx + c * sy
-            den = sz2 + (xr * xr * iax2 + yr * yr * iay2)
+            den = sz2 + _q_num(sx, sy, c, s, iax2, iay2)
             r = (sz2 + (sx * sx + sy * sy)) / den if den > zero else zero
             dbuf[i] = r * r * dn
 
@@ -413,22 +411,12 @@ def _stage_g_frac(geo, j0, gbuf, gden, c, s, ax, ay, dist, shadow):
             gbuf[i] = quarter if den > zero else zero
             gden[i] = den if den > zero else one
     elif shadow == _k.SHADOW_SMITH_RATIONAL:
-        a1, a2, b1, b2, cut = num(3.535), num(2.181), num(2.276), num(2.577), num(1.6)
+        k = _k.walter_constants(num)
         for i in range(size):
-            ci = g_ci[i]
-            co = g_co[i]
             ui = math.sqrt(_norm2(m11, m12, m21, m22, g_xi[i], g_yi[i]))
             uo = math.sqrt(_norm2(m11, m12, m21, m22, g_xo[i], g_yo[i]))
-            ni = a1 * ui + a2 * ci
-            di = ui * ui + b1 * ci * ui + b2 * ci * ci
-            no = a1 * uo + a2 * co
-            do = uo * uo + b1 * co * uo + b2 * co * co
-            if not ci < cut * ui:
-                ni = one
-                di = ci
-            if not co < cut * uo:
-                no = one
-                do = co
+            ni, di = _k.walter_g1_fraction(g_ci[i], ui, k)
+            no, do = _k.walter_g1_fraction(g_co[i], uo, k)
             den = di * do
             gbuf[i] = quarter * (ni * no) if den > zero else zero
             gden[i] = den if den > zero else one

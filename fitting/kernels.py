@@ -56,6 +56,8 @@ __all__ = [
     "logaddexp",
     "smith_over_4cc",
     "fresnel_value",
+    "walter_g1_fraction",
+    "walter_constants",
     "exp_neg_scalar",
     "stage_fresnel",
     "stage_fresnel_frac",
@@ -726,24 +728,11 @@ def _stage_g_frac(geo, j0, gbuf, gden, m, dist, shadow):
             gbuf[i] = quarter if den > zero else zero
             gden[i] = den if den > zero else one
     elif shadow == SHADOW_SMITH_RATIONAL:
-        # Walter's rational G₁ with u = m sin θ (a = c/u):  G₁/cos = (3.535u + 2.181c) /
-        # (u² + 2.276cu + 2.577c²) for c < 1.6u, else 1/c. Product of the two: one division.
-        a1, a2, b1, b2, cut = num(3.535), num(2.181), num(2.276), num(2.577), num(1.6)
+        # Walter's rational G₁ with u = m sin θ; the product of the two sides: one division.
+        k = _walter_constants(num)
         for i in range(size):
-            ci = g_ci[i]
-            co = g_co[i]
-            ui = m * g_si[i]
-            uo = m * g_so[i]
-            ni = a1 * ui + a2 * ci
-            di = ui * ui + b1 * ci * ui + b2 * ci * ci
-            no = a1 * uo + a2 * co
-            do = uo * uo + b1 * co * uo + b2 * co * co
-            if not ci < cut * ui:
-                ni = one
-                di = ci
-            if not co < cut * uo:
-                no = one
-                do = co
+            ni, di = _walter_g1_frac(g_ci[i], m * g_si[i], k)
+            no, do = _walter_g1_frac(g_co[i], m * g_so[i], k)
             den = di * do
             gbuf[i] = quarter * (ni * no) if den > zero else zero
             gden[i] = den if den > zero else one
@@ -753,6 +742,27 @@ def _stage_g_frac(geo, j0, gbuf, gden, m, dist, shadow):
                 gbuf[i] = _smith_over_4cc(g_ci[i], g_co[i], g_si[i], g_so[i], m, dist, shadow)
             else:
                 gbuf[i] = zero
+
+
+@njit(cache=True)
+def _walter_g1_frac(c, u, k):
+    """Walter's rational Beckmann G₁/cos θ as a fraction (n, d), with c = cos θ, u = m sin θ
+    (a = c/u): (3.535u + 2.181c)/(u² + 2.276cu + 2.577c²) for c < 1.6u, else 1/c (Walter et al.
+    2007, eq. 27). ``k`` from _walter_constants, in the caller's precision; written so that the
+    loops calling it stay branch-free (both forms computed, one selected)."""
+    a1, a2, b1, b2, cut, one = k
+    n = a1 * u + a2 * c
+    d = u * u + b1 * c * u + b2 * c * c
+    if not c < cut * u:
+        n = one
+        d = c
+    return n, d
+
+
+@njit(cache=True)
+def _walter_constants(num):
+    """Walter's rational-G₁ constants (and 1) as the number type ``num`` (float64 or float32)."""
+    return num(3.535), num(2.181), num(2.276), num(2.577), num(1.6), num(1.0)
 
 
 @njit(cache=True)
@@ -1075,6 +1085,9 @@ logaddexp = _logaddexp
 #: §5.3: Λ depends on the roughness projected on the direction's azimuth).
 smith_over_4cc = _smith_over_4cc
 fresnel_value = _fresnel
+#: Walter's rational G₁/cos θ as a fraction (n, d) of (cos θ, u, walter_constants(num)).
+walter_g1_fraction = _walter_g1_frac
+walter_constants = _walter_constants
 exp_neg_scalar = _exp_neg
 #: The Fresnel stage F(ω·h) for a chunk, reading ω·h from row 6 of a geometry table laid out as
 #: :func:`microfacet_geometry` (rows 0–8).
