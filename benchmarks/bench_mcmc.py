@@ -102,20 +102,24 @@ def main(argv: list[str] | None = None) -> dict:
     x0 = lsq.x.copy()
     if not args.no_discrepancy:
         x0[space.index("discrepancy")] = np.log(2e-4)
-    precision, rounding = lik.choose_precision(_precision_probes(lik, lsq, x0, args.seed))
     lo, hi = space.bounds
-    res = run_mcmc(
-        lik.log_prob,
-        x0,
-        (lo, hi),
-        McmcOptions(
-            walkers=args.walkers, max_steps=100_000, target_ess=args.target_ess, moves=args.moves
-        ),
-        rng=args.seed,
-        scale=scale,
-    )
+    probes = _precision_probes(lik, lsq, x0, args.seed)
+    # as fit_samples: the model in float32 for the sampling only, where it is measured harmless
+    with lik.sampling_precision(probes) as (precision, rounding):
+        res = run_mcmc(
+            lik.log_prob,
+            x0,
+            (lo, hi),
+            McmcOptions(
+                walkers=args.walkers,
+                max_steps=100_000,
+                target_ess=args.target_ess,
+                moves=args.moves,
+            ),
+            rng=args.seed,
+            scale=scale,
+        )
     per_step_vec = res.wall_time_s / res.iterations
-    lik.precision = "float64"  # as fit_samples: float32 for the sampling only
 
     base = plain_log_prob(lik)
     t0 = time.perf_counter()

@@ -202,19 +202,18 @@ def run_gonio(table: SampleTable, target_ess: float, walkers: int, seed: int) ->
     lik.set_discrepancy_reference(lsq.x)
     x_start = _best_discrepancy(lik, lsq.x)
     cov = None if lsq.cov is None else _walkers_covariance(lsq.cov, space.specs, x_start, None)
-    # the model's precision for the sampling, as fit_samples chooses it (fitting.likelihood)
-    precision, diff = lik.choose_precision(_precision_probes(lik, lsq, x_start, seed))
-    print(f"  gonio samples with the model in {precision} (ln L rounding {diff:.1e} at 17 points)")
-    lsq_s = time.perf_counter() - t0
-    res = run_mcmc(
-        lik.log_prob,
-        x_start,
-        space.bounds,
-        McmcOptions(walkers=walkers, max_steps=100_000, target_ess=target_ess),
-        rng=seed,
-        scale=cov,
-    )
-    lik.precision = "float64"  # as fit_samples: float32 for the sampling only
+    # the model's precision for the sampling only, as fit_samples chooses it (fitting.likelihood)
+    with lik.sampling_precision(_precision_probes(lik, lsq, x_start, seed)) as (precision, diff):
+        lsq_s = time.perf_counter() - t0
+        print(f"  gonio samples with the model in {precision} (ln L rounding {diff:.1e})")
+        res = run_mcmc(
+            lik.log_prob,
+            x_start,
+            space.bounds,
+            McmcOptions(walkers=walkers, max_steps=100_000, target_ess=target_ess),
+            rng=seed,
+            scale=cov,
+        )
     kept = res.chain.shape[0]
     return GonioRun(
         lik,

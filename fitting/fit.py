@@ -261,16 +261,14 @@ def fit_samples(
         coords = sampler_coordinates(space, _model, x_lsq)
         # The model in float32 where its rounding is negligible beside the noise (about twice
         # as fast; fitting.likelihood), for the sampling only: everything else stays float64.
-        try:
-            choice, diff = lik.choose_precision(_precision_probes(lik, lsq, x_lsq, opt.seed))
+        probes = _precision_probes(lik, lsq, x_lsq, opt.seed)
+        with lik.sampling_precision(probes) as (choice, diff):
             precision = {"mcmc": choice, "rounding_lnl": diff, "reason": lik.precision_reason}
             res = _run_ensembles(lik, lsq, x_lsq, opt, rng, h5, progress, coords)
             if opt.converge is not None:
                 log_prob = lik.log_prob if coords is None else coords.wrap(lik.log_prob)
                 res = extend_chain(res, log_prob, opt.converge, opt.steps, opt.seed) or res
             lp_lsq = lik.log_prob(x_lsq)  # in the chain's precision, to compare with its values
-        finally:
-            lik.precision = "float64"
         if coords is not None:
             res = _from_sampler(res, coords, max(1, int(opt.ensembles)))
         draws = res.flat
@@ -558,43 +556,42 @@ def _run_ensembles(lik, lsq, x_lsq, opt: FitOptions, rng, h5, progress: bool, co
 
 def _precision_probes(lik, lsq, x_lsq, seed: int, n: int = 16) -> np.ndarray:
     """Where the sampler will go, for Likelihood.choose_precision: the least-squares optimum and
-    ``n`` draws of N(x̂, C_LSQ) (the walkers' starting ball is drawn from the same covariance)
-    clipped to the prior box, the discrepancy held at its point value. Its own generator, so
-    the MCMC's random stream is the one it was."""
-    lo, hi = lik.space.bounds
+    ``n`` draws of its Laplace approximation (the walkers' starting ball is drawn from the same
+    covariance). Its own generator, so the MCMC's random stream is the one it was."""
     if lsq.cov is None:
         return x_lsq[None, :]
-    cov = lsq.cov.copy()
-    for i, spec in enumerate(lik.space.specs):
-        if spec.base == DISCREPANCY[0]:
-            cov[i, :] = cov[:, i] = 0
-    rng = np.random.default_rng([seed, 23])
-    draws = rng.multivariate_normal(x_lsq, cov, size=n, method="eigh", check_valid="ignore")
-    return np.vstack([x_lsq[None, :], np.clip(draws, lo, hi)])
+    draws = _laplace_sample(lik.space, x_lsq, lsq.cov, np.random.default_rng([seed, 23]), n)
+    return np.vstack([x_lsq[None, :], draws])
 
 
 def _laplace_draws(lik, lsq, x_lsq, opt: FitOptions, rng) -> np.ndarray:
     """Draws of the Laplace approximation N(x̂, C_LSQ), clipped to the prior box."""
     space = lik.space
-    lo, hi = space.bounds
     if lsq.cov is None:
         return np.repeat(x_lsq[None, :], 2, axis=0)
-    cov = lsq.cov.copy()
-    i_disc = [i for i, s in enumerate(space.specs) if s.base == DISCREPANCY[0]]
-    for i in i_disc:  # not constrained by LSQ: keep it at its point value
-        cov[i, :] = cov[:, i] = 0
-    if i_disc and opt.weighting == "sigma":
+    cov = lsq.cov
+    if opt.weighting == "sigma" and any(s.base == DISCREPANCY[0] for s in space.specs):
         # With a discrepancy term σ is not trusted alone: inflate by χ²/dof ≥ 1 (the usual
         # Birge-ratio correction) so the Laplace interval is not overconfident when the model
         # does not fit.
         r = lik.residuals(x_lsq, "sigma")
-        cov *= max(1.0, float(np.sum(r**2)) / max(lik.n_exact - space.ndim, 1))
+        cov = cov * max(1.0, float(np.sum(r**2)) / max(lik.n_exact - space.ndim, 1))
+    return _laplace_sample(space, x_lsq, cov, rng, 4000)
+
+
+def _laplace_sample(space, x, cov, rng, n: int) -> np.ndarray:
+    """``n`` draws of N(x, cov) clipped to the prior box, the discrepancy (which least squares
+    does not constrain) held at its point value."""
+    cov = cov.copy()
+    for i, spec in enumerate(space.specs):
+        if spec.base == DISCREPANCY[0]:
+            cov[i, :] = cov[:, i] = 0
     # C = s·(JᵀJ)⁻¹ is positive semi-definite by construction (s ≥ 0, rows zeroed); numpy checks
     # its factorisation at an absolute 1e-8, which a covariance with very different scales (a
     # parameter the data hardly constrain, which the "posterior ≈ prior" verdict reports)
     # fails by rounding alone, and would print a false "not positive-semidefinite" warning.
-    draws = rng.multivariate_normal(x_lsq, cov, size=4000, method="eigh", check_valid="ignore")
-    return np.clip(draws, lo, hi)
+    draws = rng.multivariate_normal(x, cov, size=n, method="eigh", check_valid="ignore")
+    return np.clip(draws, *space.bounds)
 
 
 def model_values(lik: Likelihood, x: np.ndarray, table: SampleTable) -> np.ndarray:

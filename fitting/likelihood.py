@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -283,6 +284,15 @@ class Likelihood:
                 f"float32 would move ln L by {diff:.2g} ≥ {F32_LNL_LIMIT} (many or precise rows)"
             )
         return self.precision, diff
+
+    @contextmanager
+    def sampling_precision(self, probes: np.ndarray) -> Iterator[tuple[str, float]]:
+        """``choose_precision(probes)`` for the block (a sampler's run), float64 again after it
+        whatever happens: yields (the choice, the largest difference)."""
+        try:
+            yield self.choose_precision(probes)
+        finally:
+            self.precision = "float64"
 
     def set_discrepancy_reference(self, theta: np.ndarray | None) -> None:
         """Freeze the discrepancy's reference f̃ at the model's prediction for θ (D,), or go back

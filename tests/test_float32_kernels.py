@@ -276,6 +276,15 @@ def test_likelihood_takes_float32_only_where_its_rounding_is_negligible():
     assert choice == "float64" and np.isnan(diff) and "no float32 kernels" in lik.precision_reason
 
 
+def test_sampling_precision_is_float64_again_after_the_block_whatever_happens():
+    lik, _lsq, probes = _setup(0.03, 1)
+    with pytest.raises(RuntimeError, match="sampler failed"):
+        with lik.sampling_precision(probes) as (choice, _diff):
+            assert choice == "float32" and lik.precision == "float32"
+            raise RuntimeError("sampler failed")
+    assert lik.precision == "float64"  # least squares and the verdicts after it stay float64
+
+
 def test_float32_samples_the_float64_posterior():
     """A sharp lobe (α = 0.02) at 3 % noise: the posterior sampled with the model in float32 has
     the float64 one's means and sds within Monte-Carlo error (4 combined MC sds: with 5
