@@ -252,7 +252,7 @@ class CameraConfig(Strict):
 
 class SampleConfig(Strict):
     """The sample as mounted. gonio assumes the holder brings the sample's top surface to the
-    arms' common centre (the origin, DESIGN §3); `thickness_m` and `holder` are recorded."""
+    arms' common centre (the origin, docs/design.md §3); `thickness_m` and `holder` are recorded."""
 
     size_m: float = Field(gt=0, le=1, description="side of the square flat sample")
     thickness_m: float = Field(0.0, ge=0, le=0.1)
@@ -520,7 +520,7 @@ class PlanConfig(Strict):
       `theta_step_deg` (0, step, ... ≤ `theta_max_deg`) and a φ list by `phi_step_deg`
       (0, step, ... < 360). At θ = 0 the azimuth is meaningless, so those poses appear once.
     - `rusinkiewicz`: every (θ_h, θ_d, φ_d) with φ_h = 0 (isotropic BRDF), converted to
-      (ω_i, ω_o) by fitting.rusinkiewicz.from_half_diff; poses below the horizon or beyond the
+      (ω_i, ω_o) by brdfdata.rusinkiewicz.from_half_diff; poses below the horizon or beyond the
       rig's reach are skipped with their reason.
     - `explicit`: the (θ_i, φ_i, θ_o, φ_o) list `poses_deg`.
     - `adaptive`: two phases in one run — the coarse plan `prescan` (any other type), then

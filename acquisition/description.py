@@ -1,6 +1,6 @@
 """What a run records about the instrument: the camera, the sample and the geometric
-calibration, resolved from the rig file (DESIGN §1: calibration uses only this and what the run
-recorded).
+calibration, resolved from the rig file (docs/design.md §1: calibration uses only this and what the
+run recorded).
 
 `camera_description` is the `[camera]` table of run.toml: the lab's description of its camera
 with the pinhole intrinsics resolved — from the `[calibration] intrinsics` file when there is

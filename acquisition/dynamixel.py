@@ -188,24 +188,24 @@ class UrlPortHandler(PortHandler):
     # 0.1 ms is far below one byte time at 1 Mbaud (10 µs) × a status packet (≥ 11 bytes).
     poll_sleep_s = 1e-4
 
-    def getCFlagBaud(self, baudrate: int) -> int:  # noqa: N802 - SDK name
+    def getCFlagBaud(self, baudrate: int) -> int:  # SDK name
         return baudrate if baudrate > 0 else -1
 
     def __init__(self, port_name: str, timeout_margin_ms: float = 0.0) -> None:
         super().__init__(port_name)
         self.timeout_margin_ms = timeout_margin_ms
 
-    def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 - SDK name
+    def setPacketTimeout(self, packet_length: int) -> None:  # SDK name
         super().setPacketTimeout(packet_length)
         self.packet_timeout += self.timeout_margin_ms
 
-    def readPort(self, length: int) -> bytes:  # noqa: N802 - SDK name
+    def readPort(self, length: int) -> bytes:  # SDK name
         data = self.ser.read(length)
         if not data:
             time.sleep(self.poll_sleep_s)
         return data
 
-    def setupPort(self, cflag_baud: int) -> bool:  # noqa: N802 - SDK name
+    def setupPort(self, cflag_baud: int) -> bool:  # SDK name
         if self.is_open:
             self.closePort()
         self.ser = serial.serial_for_url(

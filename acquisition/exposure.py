@@ -13,7 +13,7 @@ merges all brackets of a pose with noise-optimal weights (Hasinoff et al. 2010),
 wasted. Exposures are rungs of the ladder t_k = start_s·ratio^k within [min_s, max_s]:
 repeatable, a finite set of master darks covers them, and a real shutter has discrete stops.
 
-The level of an unsaturated pixel is linear in exposure, s(t) = Φ·t (DESIGN §7, linear RAW),
+The level of an unsaturated pixel is linear in exposure, s(t) = Φ·t (docs/design.md §7, linear RAW),
 so the rung that brings the signal pixel from level s_b at t_b to the target is the smallest
 t_k ≥ t_b·target/s_b.
 """

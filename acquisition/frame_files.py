@@ -3,12 +3,12 @@
 Used by real drivers that receive bare pixels (a GenICam camera through Aravis) and by the
 simulated camera (simulator.frames), so there is one writer; `calibration.decode` reads both.
 
-DNG (written with tifffile, read by rawpy/LibRaw, DESIGN §7): one uncompressed 16-bit CFA IFD
-with the tags LibRaw needs — PhotometricInterpretation 32803 (CFA), CFARepeatPatternDim 33421,
-CFAPattern 33422, DNGVersion 50706, UniqueCameraModel 50708, CFAPlaneColor 50710,
-CFALayout 50711, BlackLevelRepeatDim 50713, BlackLevel 50714, WhiteLevel 50717,
-ColorMatrix1 50721 (identity: "raw RGB"), AsShotNeutral 50728, CalibrationIlluminant1 50778,
-ExposureTime 33434 — plus the gonio metadata JSON in ImageDescription (270).
+DNG (written with tifffile, read by rawpy/LibRaw, docs/design.md §7): one uncompressed 16-bit CFA
+IFD with the tags LibRaw needs — PhotometricInterpretation 32803 (CFA), CFARepeatPatternDim 33421,
+CFAPattern 33422, DNGVersion 50706, UniqueCameraModel 50708, CFAPlaneColor 50710, CFALayout 50711,
+BlackLevelRepeatDim 50713, BlackLevel 50714, WhiteLevel 50717, ColorMatrix1 50721 (identity: "raw
+RGB"), AsShotNeutral 50728, CalibrationIlluminant1 50778, ExposureTime 33434 — plus the gonio
+metadata JSON in ImageDescription (270).
 
 Monochrome TIFF: one uncompressed uint16 (or uint8) plane, PhotometricInterpretation
 BlackIsZero, ExposureTime 33434 and the same JSON in ImageDescription. LibRaw does not read
@@ -43,7 +43,7 @@ def metadata_json(metadata: dict) -> str:
     return json.dumps(metadata, sort_keys=True, default=_json_default)
 
 
-def _json_default(obj):  # noqa: ANN001, ANN202 - json's hook
+def _json_default(obj):
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):

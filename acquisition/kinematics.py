@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from acquisition.config import RigConfig
-from fitting.directions import camera_axes, spherical_to_vector, vector_to_spherical
+from brdfdata.directions import camera_axes, spherical_to_vector, vector_to_spherical
 from plumbing.errors import UserError
 
 __all__ = ["Pose", "Unreachable", "Kinematics"]
@@ -210,5 +210,5 @@ def look_at_rotation(camera_pos_m: np.ndarray, target_m: np.ndarray | None = Non
     t = np.zeros(3) if target_m is None else np.asarray(target_m, dtype=np.float64)
     forward = t - c
     forward /= np.linalg.norm(forward)
-    right, down = camera_axes(forward)  # the one look-at rule (fitting.directions)
+    right, down = camera_axes(forward)  # the one look-at rule (brdfdata.directions)
     return np.stack([right, down, forward], axis=1)

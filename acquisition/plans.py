@@ -64,7 +64,7 @@ class Plan:
         the plan gets (set by the rig's occlusion); None for a plan with no pose near retro."""
         gaps = [_separation_deg(p.pose.deg()) for p in self.poses]
         g = min(gaps, default=float("inf"))
-        return g if g <= 15.0 else None  # fitting.coverage's retro region: angle ≤ 15°
+        return g if g <= 15.0 else None  # brdfdata.coverage's retro region: angle ≤ 15°
 
     def lab_time_s(self, readout_s: float, settle_s: float) -> float:
         """Moves + exposures + settling + readout. Exact for fixed brackets (up to the motion
@@ -121,10 +121,10 @@ def _direction_key(pose: Deg4) -> Deg4:
 
 def _rusinkiewicz(cfg: PlanConfig) -> list[Deg4]:
     """(θ_h, θ_d, φ_d) grid, φ_h = 0 → (θ_i, φ_i, θ_o, φ_o) through Rusinkiewicz's change of
-    variables (fitting.rusinkiewicz.from_half_diff, Rusinkiewicz 1998 §3). A direction below
+    variables (brdfdata.rusinkiewicz.from_half_diff, Rusinkiewicz 1998 §3). A direction below
     the horizon comes out with θ ≥ 90° and is later skipped as unreachable, with its reason."""
-    from fitting.directions import vector_to_spherical
-    from fitting.rusinkiewicz import from_half_diff
+    from brdfdata.directions import vector_to_spherical
+    from brdfdata.rusinkiewicz import from_half_diff
 
     grid = np.array(list(itertools.product(cfg.theta_h_deg, cfg.theta_d_deg, cfg.phi_d_deg)))
     wi, wo = from_half_diff(*np.radians(grid.T))
@@ -588,7 +588,7 @@ def retro_poses(
     stay in the plane of incidence (Δφ = 0, or 180° across the normal: any rig); 90°/270°
     leave it (two-arm rigs). Returns the poses and the gap they leave: the smallest
     light–camera angle among them — what no rig of this geometry can close."""
-    from fitting.directions import vector_to_spherical
+    from brdfdata.directions import vector_to_spherical
 
     poses: list[Deg4] = []
     seps = []
@@ -640,10 +640,10 @@ def retro_plan_config(
 
 
 def plan_coverage(poses_deg, needs):
-    """:func:`fitting.coverage.coverage_report` of a plan's poses (θ_i, φ_i, θ_o, φ_o deg), for
-    the regions ``needs`` (e.g. a registered model's ``fitting.registry.entry(name).needs``)."""
-    from fitting.coverage import coverage_report
-    from fitting.directions import spherical_to_vector
+    """:func:`brdfdata.coverage.coverage_report` of a plan's poses (θ_i, φ_i, θ_o, φ_o deg), for
+    the regions ``needs`` (e.g. a registered model's ``fitting.models.entry(name).needs``)."""
+    from brdfdata.coverage import coverage_report
+    from brdfdata.directions import spherical_to_vector
 
     a = np.radians(np.asarray(list(poses_deg), dtype=np.float64).reshape(-1, 4))
     return coverage_report(

@@ -1,11 +1,11 @@
 """`run.toml`, typed: what a run froze about itself, read and written in one place.
 
-Sections (DESIGN §4): `schema_version`; `[gonio]` version and start time; `[rig]` and `[plan]`
-as given; what calibration uses — `[camera]` (the rig file's description with the intrinsics
-resolved, acquisition.description), `[sample]`, `[arm_offsets]` (the geometric calibration file's
-content, when the rig names one); `[camera_device]` (what the camera reported about itself, for
-the record); and `[scene]` for a simulated rig (the emulated world, to rebuild the emulators on
-resume — calibration never reads it).
+Sections (docs/design.md §4): `schema_version`; `[gonio]` version and start time; `[rig]` and
+`[plan]` as given; what calibration uses — `[camera]` (the rig file's description with the
+intrinsics resolved, acquisition.description), `[sample]`, `[arm_offsets]` (the geometric
+calibration file's content, when the rig names one); `[camera_device]` (what the camera reported
+about itself, for the record); and `[scene]` for a simulated rig (the emulated world, to rebuild the
+emulators on resume — calibration never reads it).
 """
 
 from __future__ import annotations

@@ -78,7 +78,7 @@ def stop_requests() -> Iterator[_StopFlag]:
         yield flag
         return
 
-    def handler(signum, _frame):  # noqa: ANN001 — signal handler signature
+    def handler(signum, _frame):
         flag.set(f"interrupted ({signal.Signals(signum).name})")
 
     old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}

@@ -1,4 +1,4 @@
-"""Crash-safe run store (DESIGN §4): `run.toml`, `manifest.sqlite` (WAL), `frames/`.
+"""Crash-safe run store (docs/design.md §4): `run.toml`, `manifest.sqlite` (WAL), `frames/`.
 
 Invariants:
 - A frame is written to a temp file, fsync'd, then linked into place with `os.link`, which
@@ -51,7 +51,7 @@ __all__ = [
 SCHEMA_VERSION = 2
 
 
-def _check_values(exposure_s, angles_rad, lab_time_s) -> None:  # noqa: ANN001
+def _check_values(exposure_s, angles_rad, lab_time_s) -> None:
     """Values of a manifest row, not only types (issue 22): a finite positive exposure, finite
     angles with θ in [0°, 180°], a finite non-negative lab time. SQLite stores whatever it is
     given, and an exposure of 0 would divide every radiance of that frame by zero."""
@@ -64,7 +64,7 @@ def _check_values(exposure_s, angles_rad, lab_time_s) -> None:  # noqa: ANN001
         raise ValueError(f"lab_time_s {lab_time_s!r} is not a non-negative time")
 
 
-def _real(v) -> bool:  # noqa: ANN001
+def _real(v) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
 

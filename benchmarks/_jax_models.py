@@ -49,7 +49,7 @@ def _half_vector_parts(wi, wo):
 
 
 def _fresnel_dielectric(cos_theta, ior):
-    """Mirrors fitting.fresnel.dielectric (via dielectric_sp): F = (R_s + R_p)/2, TIR → 1."""
+    """Mirrors fitting.models.fresnel.dielectric (via dielectric_sp): F = (R_s + R_p)/2, TIR → 1."""
     c = jnp.clip(cos_theta, 0.0, 1.0)
     eta2 = ior * ior
     u2 = (eta2 - 1.0) + c * c
@@ -63,10 +63,11 @@ def _fresnel_dielectric(cos_theta, ior):
 
 def _fresnel_conductor(cos_theta, eta, k):
     """Conductor Fresnel for η + ik in real arithmetic (K. D. Möller, *Optics*, 1988; the form
-    Mitsuba and gonio's kernel `fitting.kernels._stage_f` use), algebraically equal to the complex
-    form of fitting.fresnel.conductor. The peer gets the fastest formula a JAX user would pick:
-    the complex form measured ~4× slower here, which would compare formulas, not compilers.
-    F = (r_s + r_p)/2 = (t1 − t2) t3 / ((t1 + t2)(t3 + t4)), clipped at 1; 0/0 → 1."""
+    Mitsuba and gonio's kernel `fitting.models.microfacet_kernels.stage_fresnel` use), algebraically
+    equal to the complex form of fitting.models.fresnel.conductor. The peer gets the fastest formula
+    a JAX user would pick: the complex form measured ~4× slower here, which would compare formulas,
+    not compilers. F = (r_s + r_p)/2 = (t1 − t2) t3 / ((t1 + t2)(t3 + t4)), clipped at 1; 0/0 → 1.
+    """
     c = jnp.clip(cos_theta, 0.0, 1.0)
     c2 = c * c
     s2 = 1.0 - c2
@@ -90,8 +91,8 @@ def _fresnel(params, vh, fresnel):
 
 
 def _c_lambda(c, s, m, distribution, rational):
-    """cos θ · Λ(θ), finite at the horizon; mirrors fitting.microfacet._c_lambda (GGX exact, or
-    Beckmann with Walter's rational G₁)."""
+    """cos θ · Λ(θ), finite at the horizon; mirrors fitting.models.microfacet._c_lambda (GGX exact,
+    or Beckmann with Walter's rational G₁)."""
     if distribution == "ggx":
         q = jnp.sqrt(c * c + m * m * s * s) + c
         return jnp.where(q > 0, 0.5 * m * m * s * s / q, 0.0)
@@ -104,8 +105,8 @@ def _c_lambda(c, s, m, distribution, rational):
 
 def _smith_over_4cc(ci, si, co, so, m, distribution, shadowing):
     """Separable Smith G₂/(4 cos θ_i cos θ_o) = ¼ G₁/cos · G₁/cos; mirrors
-    0.25 · fitting.microfacet.g2_over_cos_cos (kind "separable" or "rational"; the rational fit
-    is Beckmann-only, so GGX uses its exact G₁ either way, as the reference does)."""
+    0.25 · fitting.models.microfacet.g2_over_cos_cos (kind "separable" or "rational"; the rational
+    fit is Beckmann-only, so GGX uses its exact G₁ either way, as the reference does)."""
     if shadowing not in ("smith", "smith-rational"):
         raise ValueError(f"shadowing={shadowing!r} is not in the JAX peer")
     rational = shadowing == "smith-rational" and distribution == "beckmann"
@@ -115,7 +116,8 @@ def _smith_over_4cc(ci, si, co, so, m, distribution, shadowing):
 
 
 def _v_cavity_over_4cc(ch, ci, co, vh):
-    """Mirrors fitting.microfacet.v_cavity(...) / (4 cos θ_i cos θ_o) (the seed's V-cavity G)."""
+    """Mirrors fitting.models.microfacet.v_cavity(...) / (4 cos θ_i cos θ_o) (the seed's V-cavity
+    G)."""
     g = jnp.minimum(1.0, jnp.minimum(2.0 * ch * co / vh, 2.0 * ch * ci / vh))
     return g / (4.0 * (ci * co))
 
@@ -125,13 +127,13 @@ def _v_cavity_over_4cc(ch, ci, co, vh):
 
 @jax.jit
 def lambert(params, wi, wo):
-    """f = kd/π; mirrors fitting.models.Lambert._numpy."""
+    """f = kd/π; mirrors fitting.models.seed.Lambert._numpy."""
     return jnp.where(_above(wi, wo), params["kd"] / jnp.pi, 0.0)
 
 
 def _phong_family(params, wi, wo, base, log_norm):
     """f = kd/π + ks N(n) base^n above the horizon, the lobe as exp(log ks + log N + n log base)
-    (log base per pair, shared by the W sets); mirrors fitting.models.PhongFamily._numpy."""
+    (log base per pair, shared by the W sets); mirrors fitting.models.seed.PhongFamily._numpy."""
     above = _above(wi, wo)
     base = jnp.where(above, jnp.clip(base, 0.0, 1.0), 0.0)
     ks = params["ks"]
@@ -143,7 +145,7 @@ def _phong_family(params, wi, wo, base, log_norm):
 @jax.jit
 def phong(params, wi, wo):
     """The seed's Phong, base l̂·r̂ = 2 cos θ_i cos θ_o − ω_i·ω_o; mirrors
-    fitting.models.PhongFamily._numpy / _base with name "phong" (no normalisation)."""
+    fitting.models.seed.PhongFamily._numpy / _base with name "phong" (no normalisation)."""
     base = 2.0 * (wi[:, 2] * wo[:, 2]) - jnp.sum(wi * wo, axis=1)
     return _phong_family(params, wi, wo, base, 0.0)
 
@@ -151,8 +153,8 @@ def phong(params, wi, wo):
 @jax.jit
 def blinn_phong(params, wi, wo):
     """Normalised Blinn-Phong, base cos θ_h, N(n) = (n+2)(n+4)/(8π(2^(−n/2) + n)); mirrors
-    fitting.models.PhongFamily._numpy with name "blinn-phong" and
-    fitting.models.blinn_phong_normalization."""
+    fitting.models.seed.PhongFamily._numpy with name "blinn-phong" and
+    fitting.models.seed.blinn_phong_normalization."""
     s = wi + wo
     base = s[:, 2] / jnp.linalg.norm(s, axis=1)
     n = params["n"]
@@ -165,8 +167,8 @@ def torrance_sparrow(
     params, wi, wo, *, distribution="beckmann", shadowing="v-cavity", fresnel="dielectric"
 ):
     """f = kd/π + ks D G F/(4 cos θ_i cos θ_o) with the π-normalised Beckmann or GGX D; mirrors
-    fitting.models.TorranceSparrow._numpy (D: fitting.microfacet.beckmann / ggx; G:
-    v_cavity or g2_over_cos_cos; F: fitting.fresnel.dielectric / conductor)."""
+    fitting.models.seed.TorranceSparrow._numpy (D: fitting.models.microfacet.beckmann / ggx; G:
+    v_cavity or g2_over_cos_cos; F: fitting.models.fresnel.dielectric / conductor)."""
     above, wi, wo = _safe_pairs(wi, wo)
     s, norm, vh = _half_vector_parts(wi, wo)
     t2 = (s[:, 0] ** 2 + s[:, 1] ** 2) / s[:, 2] ** 2
@@ -193,14 +195,14 @@ def torrance_sparrow_anisotropic(
     params, wi, wo, *, distribution="beckmann", shadowing="smith", fresnel="dielectric"
 ):
     """Anisotropic Torrance-Sparrow with axes rotated by φ₀; mirrors
-    fitting.anisotropic.TorranceSparrowAnisotropic._numpy (D: fitting.microfacet.anisotropic_d;
-    G: Smith with the projected roughness u = |(α_x x', α_y y')| of
-    fitting.microfacet.projected_roughness, or the V-cavity)."""
+    fitting.models.anisotropic.TorranceSparrowAnisotropic._numpy (D:
+    fitting.models.microfacet.anisotropic_d; G: Smith with the projected roughness u = |(α_x x', α_y
+    y')| of fitting.models.microfacet.projected_roughness, or the V-cavity)."""
     above, wi, wo = _safe_pairs(wi, wo)
     ax, ay, phi0 = params["alpha_x"], params["alpha_y"], params["phi0"]
     cos_phi, sin_phi = jnp.cos(phi0), jnp.sin(phi0)
 
-    def rotate(v):  # tangent-frame components (W, N): fitting.microfacet.rotate_tangent
+    def rotate(v):  # tangent-frame components (W, N): fitting.models.microfacet.rotate_tangent
         return v[:, 0] * cos_phi + v[:, 1] * sin_phi, -v[:, 0] * sin_phi + v[:, 1] * cos_phi
 
     s, norm, vh = _half_vector_parts(wi, wo)

@@ -21,8 +21,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from acquisition.cameras_aravis import AravisCamera, AravisOptions  # noqa: E402
-from acquisition.device_config import AravisConfig  # noqa: E402
+from acquisition.cameras_aravis import AravisCamera, AravisOptions
+from acquisition.device_config import AravisConfig
 
 CASES = [
     ("Mono8", 512, 512),

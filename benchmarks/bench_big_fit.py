@@ -31,8 +31,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from brdfdata.directions import isotropic_gonio_directions, normalize, vector_to_spherical
 from fitting import models
-from fitting.directions import isotropic_gonio_directions, normalize, vector_to_spherical
 
 __all__ = ["main"]
 

@@ -273,7 +273,7 @@ def _child_reduce(run: Path, out: Path) -> dict:
     decode_s = [0.0]
     inner = calibration.decode.decode_frame
 
-    def timed(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - decode_frame's own signature
+    def timed(*args, **kwargs):  # decode_frame's own signature
         t0 = time.perf_counter()
         try:
             return inner(*args, **kwargs)
@@ -324,9 +324,9 @@ def _child_decode(run: Path) -> dict:
 
 
 def _child_fit(samples: Path) -> dict:
+    from brdfdata.samples import read_samples
     from fitting.binning import AUTO_BIN_DEG, AUTO_BIN_ROWS, BinOptions, read_binned, rows_in
     from fitting.fit import FitOptions, fit_samples
-    from fitting.samples import read_samples
 
     rows = rows_in(samples)
     t0 = time.perf_counter()

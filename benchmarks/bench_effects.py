@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from _common import random_positions
 
-from fitting.data_paths import find_data
+from brdfdata.data_paths import find_data
 from simulator.planner import plan_effects
 from simulator.render import Renderer
 from simulator.scene import Scene, SensorSpec, load_scene

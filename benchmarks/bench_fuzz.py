@@ -228,7 +228,7 @@ def fuzz_driver(n_packets: int, seed: int = 0) -> dict:
     return {**r, "kinds": dict(dev.kinds)}
 
 
-def _fuzz_calls(dev, limit: int, rng, pick, value_ok, classified) -> dict:  # noqa: ANN001
+def _fuzz_calls(dev, limit: int, rng, pick, value_ok, classified) -> dict:
     """Driver calls picked by `pick(rng)` → (op, call, after) until the mangling device has
     answered `limit` times: counted outcomes, malformed values (`value_ok(op, v)` False), the
     longest call, hangs (the watchdog) and crashes (anything but the `classified` faults)."""
@@ -306,7 +306,7 @@ def fuzz_light(n_replies: int, seed: int = 0) -> dict:
         ("clear", lambda d: d.clear_fault()),
     )
 
-    def light_value_ok(op: str, v) -> bool:  # noqa: ANN001
+    def light_value_ok(op: str, v) -> bool:
         if op == "status":
             return math.isfinite(v.intensity) and math.isfinite(v.measured)
         return isinstance(v, str) if op == "identify" else True

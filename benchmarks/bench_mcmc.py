@@ -16,14 +16,14 @@ import time
 
 import numpy as np
 
+from brdfdata.directions import spherical_to_vector
+from brdfdata.samples import SampleTable
 from fitting import models
-from fitting.directions import spherical_to_vector
 from fitting.fit import _precision_probes
 from fitting.likelihood import Likelihood
 from fitting.lsq import fit_least_squares
 from fitting.mcmc import McmcOptions, run_mcmc
 from fitting.priors import ParameterSpace
-from fitting.samples import SampleTable
 
 __all__ = ["main", "synthetic_table"]
 

@@ -1,9 +1,9 @@
 """Speed of the BRDF models: ns per (sample × parameter set), fused numba kernels vs the numpy
 reference, at N = 10⁴ direction pairs and W = 64 parameter sets (one emcee ensemble).
 
-Run: ``.venv/bin/python benchmarks/bench_models.py [--n 10000] [--w 64] [--repeat 7]``.
-Prints a table; no assertions (DESIGN §2: speed lives here, not in the tests). The first call
-of each kernel (JIT compile or cache load) is excluded; the best of ``repeat`` runs is shown.
+Run: ``.venv/bin/python benchmarks/bench_models.py [--n 10000] [--w 64] [--repeat 7]``. Prints a
+table; no assertions (docs/design.md §2: speed lives here, not in the tests). The first call of each
+kernel (JIT compile or cache load) is excluded; the best of ``repeat`` runs is shown.
 """
 
 from __future__ import annotations
@@ -16,8 +16,9 @@ import time
 import numba
 import numpy as np
 
-from fitting import kernels, models
-from fitting.directions import uniform_hemisphere
+from brdfdata.directions import uniform_hemisphere
+from fitting import models
+from plumbing import numba_policy
 
 __all__ = ["main", "CASES"]
 
@@ -95,7 +96,7 @@ def main(argv: list[str] | None = None) -> None:
         "--threading",
         choices=("auto", "parallel", "serial"),
         default="auto",
-        help="fitting.kernels.set_threading policy",
+        help="plumbing.numba_policy.set_threading policy",
     )
     ap.add_argument(
         "--compete",
@@ -106,7 +107,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     if args.threads:
         numba.set_num_threads(args.threads)
-    kernels.set_threading(args.threading)
+    numba_policy.set_threading(args.threading)
     rng = np.random.default_rng(0)
     wi, wo = uniform_hemisphere(args.n, rng), uniform_hemisphere(args.n, rng)
     evals = args.n * args.w
@@ -163,7 +164,7 @@ def _threading_under_load(wi, wo, w, repeat, compete, rng):
     print(f"\nthreading under a competing load: seed torrance-sparrow, mean over {min_s:g} s")
     print(f"{'policy':<10} {'cores free':>11} {f'{compete} busy procs':>15} {'ratio':>7}")
     for policy in ("serial", "parallel", "auto"):
-        kernels.set_threading(policy)
+        numba_policy.set_threading(policy)
         row = []
         for load in (0, compete):
             procs = _busy_processes(load)
@@ -182,13 +183,13 @@ def _threading_under_load(wi, wo, w, repeat, compete, rng):
                     p.wait()
             row.append(float(np.mean(times)) / evals * 1e9)
         print(f"{policy:<10} {row[0]:11.2f} {row[1]:15.2f} {row[1] / row[0]:7.2f}")
-    kernels.set_threading("auto")
+    numba_policy.set_threading("auto")
 
 
 def _v_cavity_table_cost(wi, wo):
     """oren-nayar form=v-cavity: the quadrature table K(θ_a) per direction set (built on the
     first evaluation of a set, cached) — the cost a fit pays once, per sample."""
-    from fitting import oren_nayar
+    from fitting.models import oren_nayar
 
     oren_nayar._CACHE.clear()
     model = models.get("oren-nayar", form="v-cavity")

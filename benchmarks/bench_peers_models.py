@@ -38,9 +38,11 @@ import numpy as np
 from bench_models import _VALUES, _best
 from numba import prange
 
-from fitting import kernels, models
-from fitting.directions import uniform_hemisphere
-from fitting.kernels import njit  # the kernels' own flags, so ops cost what they cost there
+from brdfdata.directions import uniform_hemisphere
+from fitting import models
+from fitting.models import kernel_math
+from plumbing import numba_policy
+from plumbing.numba_policy import njit  # the kernels' own flags, so ops cost what they cost there
 from simulator.variant import probe_variant
 
 __all__ = ["main", "CASES", "OPS"]
@@ -66,7 +68,7 @@ CASES: list[Case] = [
     Case("blinn-phong"),
     Case("torrance-sparrow"),  # seed form: beckmann, v-cavity, dielectric
     # Mitsuba's roughconductor: π-normalised D (α = m), separable Smith with Walter's rational G₁
-    # for Beckmann / the exact G₁ for GGX, exact conductor Fresnel (DESIGN §7)
+    # for Beckmann / the exact G₁ for GGX, exact conductor Fresnel (docs/design.md §7)
     Case("torrance-sparrow", {"shadowing": "smith-rational", "fresnel": "conductor"}, "beckmann"),
     Case(
         "torrance-sparrow",
@@ -85,10 +87,11 @@ CASES: list[Case] = [
 
 # -- roofline: operations per evaluation ----------------------------------------------------------
 # Counted by reading the numba path each model takes for per-set parameters ((W, 1) arrays), as of
-# this writing: fitting.kernels (_lobe_row/_lobe_block; _geometry_row and the _ts_block stages
-# _stage_d, _stage_g, _stage_f), fitting.anisotropic (_aniso_row, _block_per_set with _stage_d,
-# _stage_g_frac) and fitting.models.Lambert._numba, in float64 (the roof column is gonio's
-# float64). Conventions:
+# this writing: fitting.models.lobe_kernels (_lobe_row/_lobe_block) and
+# fitting.models.microfacet_kernels (_geometry_row and the _ts_block stages _stage_d, _stage_g,
+# _stage_f), fitting.models.anisotropic (_aniso_row, _block_per_set with _stage_d, _stage_g_frac)
+# and fitting.models.seed.Lambert._numba, in float64 (the roof column is gonio's float64).
+# Conventions:
 #   addmul  one add, sub, mul, compare, select, min or max (all ~1 vector µop on x86)
 #   fma     one explicit a*b + c pattern (the kernels' njit does not fuse it — IEEE rounding keeps
 #           serial and parallel twins identical — so the microbenchmark below, compiled by the
@@ -105,11 +108,12 @@ _ANISO_PAIR = {"addmul": 25, "fma": 8, "div": 9, "sqrt": 4}  # _aniso_row: as _g
 _D_BECKMANN = {"addmul": 8, "exp": 1}  # x = t2/m², min, exp_neg, (1+t2)²·e·dn, underflow select
 _D_GGX = {"addmul": 3, "fma": 1, "div": 1}  # r = (1+t2)/(1 + t2/m²), r²·dn
 _G_RATIONAL = {"addmul": 23, "fma": 6}  # per side u = m s, numerator, denominator, a < 1.6
-# selects; its one divide is folded into the combine's (fitting.kernels._stage_g_frac)
+# selects; its one divide is folded into the combine's
+# (fitting.models.microfacet_kernels.stage_shadowing_frac)
 _G_GGX = {"addmul": 9, "fma": 2, "sqrt": 2}  # 1/((ci + Ri)(co + Ro)), Ri = √(ci² + m²si²); the
-# divide folded into the combine's
-# F as a fraction (fitting.kernels._stage_f_frac); both torrance-sparrow kernels fold its divide
-# into the combine's
+# divide folded into the combine's F as a fraction
+# (fitting.models.microfacet_kernels.stage_fresnel_frac); both torrance-sparrow kernels fold its
+# divide into the combine's
 _F_DIELECTRIC = {"addmul": 14, "fma": 4, "sqrt": 1}  # Rs + Rp over one denominator, TIR select
 _F_CONDUCTOR = {"addmul": 19, "fma": 2, "sqrt": 2}  # Möller's real form, one denominator
 _COMBINE = {"addmul": 5, "fma": 1, "div": 1}  # kd/π + ks·(d·g·f)/(gden·fden), valid select
@@ -195,7 +199,7 @@ def _step_exp(y):
 
 @njit(inline="always")
 def _step_exp_neg(y):
-    return kernels.exp_neg_scalar(y)  # gonio's vectorisable exp(−y)
+    return kernel_math.exp_neg_scalar(y)  # gonio's vectorisable exp(−y)
 
 
 @njit(inline="always")
@@ -365,7 +369,7 @@ def limit_threads(requested: int) -> tuple[int, str]:
     # gonio's default "auto" policy picks serial or parallel from timings as it runs; here the
     # peers' own thread pools (XLA's spin after each call) would make its early picks noise. Every
     # peer gets the threads, so gonio runs its parallel kernels (bench_models measures "auto").
-    kernels.set_threading("parallel" if threads > 1 else "serial")
+    numba_policy.set_threading("parallel" if threads > 1 else "serial")
     return threads, note
 
 
@@ -417,7 +421,7 @@ _MITSUBA_VARIANT = "llvm_ad_rgb"
 
 def mitsuba_unavailable() -> str | None:
     """Why the LLVM variant cannot be used here, or None. LLVM 15/16 abort the whole process
-    (DESIGN §7), so it is probed in a child interpreter by the simulator's own probe."""
+    (docs/design.md §7), so it is probed in a child interpreter by the simulator's own probe."""
     ok, reason = probe_variant(_MITSUBA_VARIANT)
     return None if ok else f"{_MITSUBA_VARIANT} unavailable ({reason})"
 

@@ -16,13 +16,13 @@ One run, two posteriors, ESS per second of each sampler and the gonio/NUTS ratio
   θ_i, θ_o ∈ [0.05, 1.3] rad as in synthetic_table (lobe pairs outside are redrawn), noise
   σ = 3 % f + 10⁻³ as there.
 
-The posterior (fitting.likelihood, fitting.priors): θ in gonio's sampled coordinates (log of the
-log parameters), flat on the prior box, −∞ outside; ln L = Σ −½[(f − f̂)²/v + ln 2πv] with
-v = σ² + (s f̃)², f̃ = |f̂(θ_LSQ)| frozen at the least-squares optimum
-(``set_discrepancy_reference``). It is written again in JAX float64 below (geometry, Beckmann D,
-V-cavity G, dielectric Fresnel, all as fitting.kernels computes them) and checked against
-``Likelihood.log_prob`` at several points to 1e-9 relative *before* anything is sampled, and its
-gradient against central differences of ``log_prob``.
+The posterior (fitting.likelihood, fitting.priors): θ in gonio's sampled coordinates (log of the log
+parameters), flat on the prior box, −∞ outside; ln L = Σ −½[(f − f̂)²/v + ln 2πv] with v = σ² + (s
+f̃)², f̃ = |f̂(θ_LSQ)| frozen at the least-squares optimum (``set_discrepancy_reference``). It is
+written again in JAX float64 below (geometry, Beckmann D, V-cavity G, dielectric Fresnel, all as
+fitting.models.microfacet_kernels computes them) and checked against ``Likelihood.log_prob`` at
+several points to 1e-9 relative *before* anything is sampled, and its gradient against central
+differences of ``log_prob``.
 
 gonio's side is what ``gonio fit`` does (fitting.fit.fit_samples): multi-start least squares,
 the discrepancy reference frozen there, ln s set to its best grid value, then ``run_mcmc`` with
@@ -99,14 +99,14 @@ from dataclasses import dataclass
 import numpy as np
 from bench_mcmc import TRUTH, synthetic_table
 
+from brdfdata.directions import reflect, spherical_to_vector, vector_to_spherical
+from brdfdata.samples import SampleTable
 from fitting import models
-from fitting.directions import reflect, spherical_to_vector, vector_to_spherical
 from fitting.fit import _best_discrepancy, _precision_probes, _walkers_covariance
 from fitting.likelihood import Likelihood
 from fitting.lsq import fit_least_squares
 from fitting.mcmc import McmcOptions, initial_ball, run_mcmc
 from fitting.priors import ParameterSpace
-from fitting.samples import SampleTable
 
 __all__ = ["main", "sharp_table"]
 
@@ -230,8 +230,9 @@ def run_gonio(table: SampleTable, target_ess: float, walkers: int, seed: int) ->
 
 # -- the posterior in JAX -------------------------------------------------------------------------
 def _geometry(wi: np.ndarray, wo: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-pair tan²θ_h, ω·h and the V-cavity G/(4 cos θ_i cos θ_o), as fitting.kernels'
-    geometry pass: θ-independent, so computed once (a JAX user would hoist it too)."""
+    """Per-pair tan²θ_h, ω·h and the V-cavity G/(4 cos θ_i cos θ_o), as
+    fitting.models.microfacet_kernels' geometry pass: θ-independent, so computed once (a JAX user
+    would hoist it too)."""
     ci, co = wi[:, 2], wo[:, 2]
     valid = (ci > 0) & (co > 0)
     ci_s, co_s = np.where(valid, ci, 1.0), np.where(valid, co, 1.0)
@@ -293,7 +294,8 @@ def jax_posterior(lik: Likelihood, x_ref: np.ndarray):
     ln_2pi = math.log(2 * math.pi)
 
     def fresnel(c, ior):
-        # fitting.kernels._stage_f: R_s, R_p with one division; TIR and 0/0 give 1
+        # fitting.models.microfacet_kernels.stage_fresnel: R_s, R_p with one division; TIR and 0/0
+        # give 1
         eta2 = ior * ior
         u2 = (eta2 - 1.0) + c * c
         ok = u2 > 0.0

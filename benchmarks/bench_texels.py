@@ -42,8 +42,8 @@ def _rss_mb() -> float:
 def _throughput(samples: Path, workers: int, steps: int, chunk: int, base: Path) -> dict:
     from _texels import fit_options, texel_samples
 
-    from gonio.cluster import dask_client, read_rows
-    from gonio.texel_jobs import TexelJob, run_texel_job
+    from gonio.scaleout.cluster import dask_client, read_rows
+    from gonio.scaleout.texels import TexelJob, run_texel_job
 
     t0 = time.perf_counter()
     with dask_client(None, workers) as client:
@@ -77,8 +77,8 @@ def _throughput(samples: Path, workers: int, steps: int, chunk: int, base: Path)
 def _recovery(samples: Path, material, steps: int, base: Path) -> dict:
     from _texels import fit_options
 
-    from gonio.cluster import dask_client, read_rows
-    from gonio.texel_jobs import TexelJob, run_texel_job
+    from gonio.scaleout.cluster import dask_client, read_rows
+    from gonio.scaleout.texels import TexelJob, run_texel_job
     from simulator.texture import texel_truth
 
     job = TexelJob(samples, base / "recovery", fit_options(steps), chunk_texels=16)

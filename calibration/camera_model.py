@@ -12,9 +12,9 @@ and lands on pixel (u, v) = (fx x_d + cx, fy y_d + cy), pixel centres at integer
 `cv2.calibrateCamera` minimises the squared reprojection error over all views; the RMS it
 returns (pixels) is sqrt(Σ‖u_obs − u_model‖² / N_points).
 
-OpenCV 5 keeps only the class API for ChArUco (DESIGN §7): `aruco.CharucoDetector.detectBoard`
-then `board.matchImagePoints`; detection needs 8-bit input, so 16-bit and float images are
-scaled to 8 bits first.
+OpenCV 5 keeps only the class API for ChArUco (docs/design.md §7):
+`aruco.CharucoDetector.detectBoard` then `board.matchImagePoints`; detection needs 8-bit input, so
+16-bit and float images are scaled to 8 bits first.
 """
 
 from __future__ import annotations

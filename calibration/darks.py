@@ -1,7 +1,7 @@
 """Calibration frames of a run, and master darks per exposure.
 
 Calibration frames (darks, flats, reference-target captures) are kept raw, like the measurement
-frames (DESIGN §4: "raw data is kept"), under ``RUN/calibration/<kind>/`` and listed in the
+frames (docs/design.md §4: "raw data is kept"), under ``RUN/calibration/<kind>/`` and listed in the
 manifest's calibration table (acquisition.store; recorded by the plan's calibration phases,
 acquisition.calibration_capture, or a retake with `gonio capture KIND RUN`). `calibration_frames`
 gives the newest complete take of a kind. The reduce step builds the masters from these raw
@@ -33,6 +33,7 @@ __all__ = [
     "CalibrationFrameError",
     "calibration_frames",
     "calibration_take_description",
+    "decoded_frames",
     "MasterDark",
     "DarkLibrary",
     "master_dark",
@@ -66,7 +67,7 @@ def calibration_take_description(run_dir: str | Path, kind: str) -> dict:
         return {} if info is None else dict(info["description"])
 
 
-def _decoded(run_dir: Path, entries: list[dict]) -> Iterator[DecodedFrame]:
+def decoded_frames(run_dir: Path, entries: list[dict]) -> Iterator[DecodedFrame]:
     """The entries' frames, decoded as the master that takes them asks, the next two on both
     cores while the master works on this one (plumbing.prefetch); all of one shape. Masters
     accumulate frame by frame: holding every frame at once and then a stack of them cost
@@ -91,8 +92,8 @@ def _decoded(run_dir: Path, entries: list[dict]) -> Iterator[DecodedFrame]:
 
 
 def _decode_all(run_dir: Path, entries: list[dict]) -> Iterator[np.ndarray]:
-    """The entries' frames' DN (as decoded: float32 or float64), see `_decoded`."""
-    for frame in _decoded(run_dir, entries):
+    """The entries' frames' DN (as decoded: float32 or float64), see `decoded_frames`."""
+    for frame in decoded_frames(run_dir, entries):
         yield frame.dn
 
 
@@ -129,7 +130,7 @@ def master_dark(frames: Iterable[np.ndarray], exposure_s: float) -> MasterDark:
 
 
 @numba.njit(cache=True, nogil=True)
-def _welford_update(mean, m2, x, n):  # noqa: ANN001
+def _welford_update(mean, m2, x, n):
     """One frame into the running mean and sum of squared deviations, in place, in one pass:
     δ = x − mean; mean += δ/n; m2 += δ·(x − mean) (numpy's whole-array steps, same rounding)."""
     for k in range(mean.shape[0]):

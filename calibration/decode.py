@@ -1,11 +1,11 @@
 """Decode camera frames (DNG/NEF/... RAW through rawpy, linear EXR through OpenEXR) to DN arrays.
 
-RAW follows DESIGN §7 (rawpy 0.28 / LibRaw 0.22): we take ``raw_image_visible`` (the sensor values
-with the masked border cropped, no demosaic, no scaling) and LibRaw's per-colour black level,
+RAW follows docs/design.md §7 (rawpy 0.28 / LibRaw 0.22): we take ``raw_image_visible`` (the sensor
+values with the masked border cropped, no demosaic, no scaling) and LibRaw's per-colour black level,
 ``black_level_per_channel``, which is indexed by *colour index* (``raw_colors_visible``), not by
 position in the 2×2 pattern. The linear value is
 
-    linear = (DN − black[colour_index]) / (white − black[colour_index])        (DESIGN §7)
+    linear = (DN − black[colour_index]) / (white − black[colour_index])        (docs/design.md §7)
 
 and no postprocess/auto-brightness is ever applied, so absolute values survive. The white level
 reported by LibRaw is the nominal one; the real clip level can be lower — calibration measures it.
@@ -93,7 +93,7 @@ class DecodedFrame:
 
 
 def linear(frame: DecodedFrame) -> np.ndarray:
-    """(DN − black) / (white − black), float32, same shape as ``frame.dn`` (DESIGN §7)."""
+    """(DN − black) / (white − black), float32, same shape as ``frame.dn`` (docs/design.md §7)."""
     black = np.asarray(frame.black_level, dtype=np.float32)
     return ((frame.dn - black) / (np.float32(frame.white_level) - black)).astype(np.float32)
 
@@ -226,7 +226,7 @@ def _tiff_metadata(p: Path) -> tuple[dict, float]:
             if et_val is not None:
                 num, den = et_val if isinstance(et_val, tuple) else (et_val, 1)
                 exposure = num / den if den else float("nan")
-    except Exception:  # noqa: BLE001 — not TIFF-based (CR3, RAF): metadata is optional
+    except Exception:  # not TIFF-based (CR3, RAF): metadata is optional
         pass
     return md, exposure
 
@@ -246,7 +246,7 @@ def _check_tiff_complete(p: Path) -> None:
                 offs, counts = page.dataoffsets, page.databytecounts
                 if offs and counts:
                     need = max(need, max(o + c for o, c in zip(offs, counts, strict=False)))
-    except Exception:  # noqa: BLE001 — unreadable as TIFF: leave the diagnosis to LibRaw
+    except Exception:  # unreadable as TIFF: leave the diagnosis to LibRaw
         return
     if need > size:
         raise FrameError(f"{p}: truncated RAW (file has {size} bytes, image data needs {need})")
@@ -283,7 +283,7 @@ def _decode_raw(p: Path) -> DecodedFrame:
     cfa = "".join(desc[i] for i in pattern_idx.ravel())
     if sorted(cfa) != ["B", "G", "G", "R"]:
         raise FrameError(f"{p}: unsupported CFA colours {cfa!r} (only R/G/B Bayer)")
-    # Per-pixel black: indexed by colour index (not by pattern position) — DESIGN §7.
+    # Per-pixel black: indexed by colour index (not by pattern position) — docs/design.md §7.
     black = black_per_colour[colors]
     if p.suffix.lower() in _TIFF_RAW_SUFFIXES:
         md, tiff_exposure = _tiff_metadata(p)
@@ -327,7 +327,7 @@ def _decode_exr(p: Path) -> DecodedFrame:
                 raise FrameError(f"{p}: EXR has no R,G,B or Y channels (found: {names})")
     except FrameError:
         raise
-    except Exception as exc:  # noqa: BLE001 — OpenEXR raises plain RuntimeError/Exception
+    except Exception as exc:  # OpenEXR raises plain RuntimeError/Exception
         # The library's own complaint (e.g. "corrupt leader ... file offset N") says more than
         # the exception the binding raises afterwards; drop the repeated path from it.
         said = _first_line(native).replace(f"{p}: ", "")
@@ -369,7 +369,7 @@ def _decode_mono_tiff(p: Path) -> DecodedFrame:
         with _tifffile_quiet(), tifffile.TiffFile(p) as tif:
             page = tif.pages[0]
             arr = page.asarray()
-    except Exception as exc:  # noqa: BLE001 — tifffile raises many kinds; one line for all
+    except Exception as exc:  # tifffile raises many kinds; one line for all
         raise FrameError(f"{p}: cannot read TIFF ({type(exc).__name__}: {exc})") from None
     if arr.ndim != 2 or arr.dtype not in (np.uint8, np.uint16):
         raise FrameError(

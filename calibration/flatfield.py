@@ -6,14 +6,14 @@ The camera images a uniform radiance field (integrating sphere or diffuser; in t
 
     g(u, v) = ē(u, v) / ē₀,     ē = mean over frames of (DN − master dark) · K⁻¹   [electrons]
 
-where ē₀ is the response *at the optical centre*, taken from a smooth fit ē ≈ Σ_k a_k ρ^k
-(ρ = r²/f², k = 0..3) per colour channel, ē₀ = a₀. Fitting the whole image, rather than averaging
-a few central pixels, keeps their PRNU out of the absolute scale (the fit averages the PRNU of
-every pixel, ~σ_PRNU/√N_px). Natural vignetting E ∝ cos⁴α = (1 + ρ)⁻² (Horn, Robot Vision §10.2;
-DESIGN §7 "measure vignetting with a flat field rather than trusting cos⁴") is reproduced by the
-cubic in ρ to ~4ρ³ (≤ 4·10⁻⁶ at ρ ≤ 0.01, an 11° half-diagonal). Normalising per colour channel
-makes the flat independent of the source's colour; the camera irradiance equation keeps the
-absolute scale on axis.
+where ē₀ is the response *at the optical centre*, taken from a smooth fit ē ≈ Σ_k a_k ρ^k (ρ =
+r²/f², k = 0..3) per colour channel, ē₀ = a₀. Fitting the whole image, rather than averaging a few
+central pixels, keeps their PRNU out of the absolute scale (the fit averages the PRNU of every
+pixel, ~σ_PRNU/√N_px). Natural vignetting E ∝ cos⁴α = (1 + ρ)⁻² (Horn, Robot Vision §10.2;
+docs/design.md §7 "measure vignetting with a flat field rather than trusting cos⁴") is reproduced by
+the cubic in ρ to ~4ρ³ (≤ 4·10⁻⁶ at ρ ≤ 0.01, an 11° half-diagonal). Normalising per colour channel
+makes the flat independent of the source's colour; the camera irradiance equation keeps the absolute
+scale on axis.
 
 The correction divides a measured flux by g. g is itself measured with shot noise: its relative
 variance per pixel, (ē + σ_d²)/(N ē²) with σ_d² the dark temporal variance in e², is added to each
@@ -33,8 +33,8 @@ import numpy as np
 from calibration.darks import (
     CalibrationFrameError,
     DarkLibrary,
-    _decoded,
     calibration_frames,
+    decoded_frames,
 )
 
 __all__ = ["FlatField", "master_flat", "load_flat", "colour_index"]
@@ -68,7 +68,7 @@ class FlatField:
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_unsaturated(total, x, clip_dn):  # noqa: ANN001
+def _add_unsaturated(total, x, clip_dn):
     """total += x (in float64) in one pass; True if any value of x is at or above `clip_dn`."""
     saturated = False
     for k in range(total.shape[0]):
@@ -153,7 +153,7 @@ def load_flat(
     exposures = {float(e["exposure_s"]) for e in entries}
     if len(exposures) != 1:
         raise CalibrationFrameError(f"flat frames at several exposures {sorted(exposures)}")
-    frames = _decoded(run_dir, entries)  # raises a one-line error on a bad frame
+    frames = decoded_frames(run_dir, entries)  # raises a one-line error on a bad frame
     first = next(frames)  # its layout (channels, mosaic) is every flat's
     return master_flat(
         itertools.chain([first.dn], (f.dn for f in frames)),

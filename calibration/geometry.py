@@ -21,7 +21,7 @@ import numba
 import numpy as np
 
 from acquisition.kinematics import Kinematics, look_at_rotation
-from fitting.kernels import dispatch
+from plumbing.numba_policy import dispatch
 
 __all__ = [
     "Intrinsics",
@@ -174,7 +174,7 @@ def pixel_geometry(
 
 
 @numba.njit(cache=True, nogil=True)
-def _ray_row(r, rays, out):  # noqa: ANN001
+def _ray_row(r, rays, out):
     """Row r of the pixels: the ray d = R·(x, y, 1) from the camera cut with z = 0 at
     p = C + t·d (t = −C_z/d_z, none when d_z ≥ 0), ω_i = (L − p)/|L − p|, ω_o = (C − p)/|C − p|,
     and on the sample when |p_x|, |p_y| < `half` and both directions are above the surface.
@@ -212,14 +212,14 @@ def _ray_row(r, rays, out):  # noqa: ANN001
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _rays_par(rays, out):  # noqa: ANN001
+def _rays_par(rays, out):
     """`_ray_row` for every row, rows in parallel (each pixel's arithmetic is its own)."""
     for r in numba.prange(rays[0].shape[0]):
         _ray_row(r, rays, out)
 
 
 @numba.njit(cache=True, nogil=True)
-def _rays_ser(rays, out):  # noqa: ANN001
+def _rays_ser(rays, out):
     for r in range(rays[0].shape[0]):
         _ray_row(r, rays, out)
 

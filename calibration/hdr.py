@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from fitting.kernels import dispatch
+from plumbing.numba_policy import dispatch
 
 __all__ = [
     "merge_brackets",
@@ -255,7 +255,7 @@ def merge_frames_local(
 
 
 @numba.njit(cache=True, nogil=True)
-def _row_electrons(dn, off, gain, white, y, s, ok):  # noqa: ANN001
+def _row_electrons(dn, off, gain, white, y, s, ok):
     """Row y of every bracket in electrons into s[i], and ok[i] = 1.0 where not saturated
     (DN < white − ½), 0.0 where saturated."""
     for i in range(dn.shape[0]):
@@ -267,7 +267,7 @@ def _row_electrons(dn, off, gain, white, y, s, ok):  # noqa: ANN001
 
 
 @numba.njit(cache=True, nogil=True)
-def _row_weighted(s, ok, t, var_read, ref, scratch, est, var):  # noqa: ANN001
+def _row_weighted(s, ok, t, var_read, ref, scratch, est, var):
     """Per value x of a row: est = Σ wᵢ sᵢ/tᵢ / Σ wᵢ and var = 1/Σ wᵢ over kept brackets
     (ok = 1), wᵢ = tᵢ²/Dᵢ, Dᵢ = max(ref, 0)·tᵢ + σ²ᵢ — as one fraction: with P = Πⱼ Dⱼ and
     Pᵢ = P/Dᵢ (products over kept j ≠ i), est = Σ tᵢ sᵢ Pᵢ / Σ tᵢ² Pᵢ, var = P / Σ tᵢ² Pᵢ: one
@@ -280,7 +280,7 @@ def _row_weighted(s, ok, t, var_read, ref, scratch, est, var):  # noqa: ANN001
 
 
 @numba.njit(cache=True, nogil=True)
-def _row_weighted_general(s, ok, t, var_read, ref, scratch, est, var):  # noqa: ANN001
+def _row_weighted_general(s, ok, t, var_read, ref, scratch, est, var):
     """`_row_weighted` for any number of brackets, one operation per pass over the row."""
     nb, n = s.shape
     big_d, others, num, den, prod = scratch
@@ -312,7 +312,7 @@ def _row_weighted_general(s, ok, t, var_read, ref, scratch, est, var):  # noqa: 
 
 
 @numba.njit(cache=True, nogil=True)
-def _row_weighted_fused(s, ok, t, var_read, ref, est, var):  # noqa: ANN001
+def _row_weighted_fused(s, ok, t, var_read, ref, est, var):
     """`_row_weighted` for 2 or 3 brackets in one pass over the row (the general form makes
     ~17 passes of one operation each; this one keeps a value's terms in registers), with the
     same operations in the same order, so bit for bit the same."""
@@ -351,7 +351,7 @@ def _row_weighted_fused(s, ok, t, var_read, ref, est, var):  # noqa: ANN001
 
 
 @numba.njit(cache=True, nogil=True)
-def _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp):  # noqa: ANN001
+def _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp):
     """`merge_brackets` with own-value weights along a row: Φ starts at the longest kept
     bracket's sᵢ/tᵢ, then two weighted iterations; where no bracket is kept (sat = 1) Φ is the
     shortest bracket's sᵢ/tᵢ (its value is unknown)."""
@@ -373,14 +373,14 @@ def _row_own_merge(s, ok, t, var_read, shortest, scratch, phi, sat, tmp):  # noq
 
 
 @numba.njit(cache=True, nogil=True)
-def _row_scratch(nb, n):  # noqa: ANN001, ANN202
+def _row_scratch(nb, n):
     """The general weighted mean's buffers (empty for the fused one's 2 or 3 brackets)."""
     m = 0 if nb in (2, 3) else n
     return (np.empty((nb, m)), np.empty(m), np.empty(m), np.empty(m), np.empty(m))
 
 
 @numba.njit(cache=True, nogil=True)
-def _own_merge_where(s, ok, t, var_read, shortest, cnt, dropped, n_own, ref):  # noqa: ANN001
+def _own_merge_where(s, ok, t, var_read, shortest, cnt, dropped, n_own, ref):
     """ref[x] = the own-value merge of the kept brackets for the `n_own` values x with no
     usable neighbour (cnt = 0) and a bracket dropped (dropped ≠ 0), gathered into rows of their
     own: every value's merge is its own arithmetic, so it is the whole row's bit for bit."""
@@ -404,7 +404,7 @@ def _own_merge_where(s, ok, t, var_read, shortest, cnt, dropped, n_own, ref):  #
 
 
 @numba.njit(cache=True, nogil=True)
-def _first_row(y, frames, noise, s, ok, first, fu, us):  # noqa: ANN001
+def _first_row(y, frames, noise, s, ok, first, fu, us):
     """Step 1 for row y, whose electrons are `s`, `ok`: every value's own-value merge into
     `first`, and whether it may serve as a neighbour (valid and not all saturated) into the
     padded rows `us` (1/0) and `fu` (its merge where usable, 0 elsewhere). `noise` = (read
@@ -424,7 +424,7 @@ def _first_row(y, frames, noise, s, ok, first, fu, us):  # noqa: ANN001
 
 
 @numba.njit(cache=True, nogil=True)
-def _final_row(y, frames, field, noise, s, ok, first, near_rows, out):  # noqa: ANN001
+def _final_row(y, frames, field, noise, s, ok, first, near_rows, out):
     """Step 2 for row y, whose electrons are `s`, `ok` (its clip test drops brackets from
     `ok`): the neighbours' mean, the brackets near the clip dropped by it, and the merge
     weighted by it (or by the value's own merge `first` where it has no usable neighbour),
@@ -491,7 +491,7 @@ _BAND_ROWS = 64
 
 
 @numba.njit(cache=True, nogil=True)
-def _merge_band(frames, field, out, y0, y1):  # noqa: ANN001
+def _merge_band(frames, field, out, y0, y1):
     """Both steps for rows y0 ≤ y < y1, interleaved: step 1 runs sy rows ahead of step 2 (its
     own rows y0 − sy … y1 + sy − 1, within the frame), so a row's electrons are computed once,
     for both steps, and the steps' state is a band of rows, not whole-frame arrays. Zero rows
@@ -519,7 +519,7 @@ def _merge_band(frames, field, out, y0, y1):  # noqa: ANN001
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _merge_par(frames, field, out):  # noqa: ANN001
+def _merge_par(frames, field, out):
     """merge_frames_local's two steps on rows of values (B, H, W·C), bands of rows in parallel:
     each value's arithmetic is its own, so the result is the serial twin's bit for bit.
     `frames` = (dn, offset, gain, white, t, read σ, valid, the neighbours' strides in rows and
@@ -531,7 +531,7 @@ def _merge_par(frames, field, out):  # noqa: ANN001
 
 
 @numba.njit(cache=True, nogil=True)
-def _merge_ser(frames, field, out):  # noqa: ANN001
-    """`_merge_par` on one thread (small frames, or cores busy: fitting.kernels.dispatch), as
+def _merge_ser(frames, field, out):
+    """`_merge_par` on one thread (small frames, or cores busy: plumbing.numba_policy.dispatch), as
     one band: no halo to recompute."""
     _merge_band(frames, field, out, 0, frames[0].shape[1])

@@ -1,4 +1,4 @@
-"""Reduce a run directory to BRDF samples (`samples.parquet`, DESIGN §4).
+"""Reduce a run directory to BRDF samples (`samples.parquet`, docs/design.md §4).
 
 Per pose: decode every bracket (untouched frames from `frames/`), subtract the master dark of
 that exposure (or the nominal black level when the run has no dark frames), convert to
@@ -32,7 +32,7 @@ recorded (`RUN/calibration/`, calibration.darks / flatfield / reference); never 
 The per-pose work (merge, flat, colour planes, geometry, segmentation) is calibration.planes,
 done only in the window around the sample's image (calibration.planes.footprint_window), while
 the next pose's frames are decoded in a background thread (plumbing.prefetch). Each pose's
-samples go to the file as they are made (`reduce_to_file`, fitting.samples.SampleStream), so the
+samples go to the file as they are made (`reduce_to_file`, brdfdata.samples.SampleStream), so the
 memory of a run does not grow with its number of poses; `reduce_run` reads the file back for a
 caller that fits the table at once.
 Bad input: a frame listed in the manifest but missing → CalibrationError naming the first; a
@@ -57,6 +57,8 @@ from acquisition.config import RigConfig
 from acquisition.kinematics import Kinematics
 from acquisition.run_document import RunDocument
 from acquisition.store import RunStore
+from brdfdata.directions import vector_to_spherical
+from brdfdata.samples import Flags, SampleStream, SampleTable, read_samples, write_samples_streamed
 from calibration.darks import CalibrationFrameError, load_darks
 from calibration.decode import FrameError, FrameIntegrityError, decode_frame
 from calibration.flatfield import load_flat
@@ -77,8 +79,6 @@ from calibration.reference import (
 )
 from calibration.regions import region_means
 from calibration.texels import TexelGrid, check_replace
-from fitting.directions import vector_to_spherical
-from fitting.samples import Flags, SampleStream, SampleTable, read_samples, write_samples_streamed
 from plumbing.atomic import check_writable_dir
 from plumbing.errors import UserError
 from plumbing.prefetch import prefetched
@@ -634,7 +634,7 @@ def _reference_scale(cal: RunCalibration, refs, level) -> ReferenceScale:
     )
 
 
-def _arm_pose(cal: RunCalibration, rec) -> dict:  # noqa: ANN001 (CaptureRecord)
+def _arm_pose(cal: RunCalibration, rec) -> dict:  # CaptureRecord
     """A pose as the fit's arm-angle nuisances need it (fitting.nuisance): the arms' azimuths
     [φ light, φ camera] (the plane each elevation turns in, defined on the normal too, where a
     direction's own φ is not), the elevation axes' angles (sag ∝ their sine) and the commanded

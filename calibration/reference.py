@@ -1,17 +1,17 @@
 """Reference-target radiometric calibration: the light × camera scale from a target of known BRDF.
 
-Instead of trusting the lamp's certified intensity *and* the camera's absolute responsivity
-(QE, f-number, pixel pitch, gain), a lab images a reference target of known BRDF f_ref (a
-Lambertian standard, or Spectralon with a calibrated f_ref(θ_i, θ_o) table — Spectralon departs
-from Lambert by up to ~20 % at large angles, DESIGN §7) at known poses. With the camera irradiance
-equation as a *nominal* conversion (calibration.radiometry, L̃ = k_rad · Φ) each reference pixel
-gives the effective source intensity
+Instead of trusting the lamp's certified intensity *and* the camera's absolute responsivity (QE,
+f-number, pixel pitch, gain), a lab images a reference target of known BRDF f_ref (a Lambertian
+standard, or Spectralon with a calibrated f_ref(θ_i, θ_o) table — Spectralon departs from Lambert by
+up to ~20 % at large angles, docs/design.md §7) at known poses. With the camera irradiance equation
+as a *nominal* conversion (calibration.radiometry, L̃ = k_rad · Φ) each reference pixel gives the
+effective source intensity
 
     k = L̃_ref / (f_ref(ω_i, ω_o) · cos θ_i / r²)                         [W sr⁻¹]
 
 — the true intensity times the ratio of the camera's true to nominal responsivity. Used in place
 of the certified intensity in f = L̃ / (k · cos θ_i / r²) this is exactly the reference-target
-method f = f_ref · (S_s/t_s)/(S_ref/t_ref) · (E_ref/E_s) (DESIGN §7; Nicodemus et al., NBS
+method f = f_ref · (S_s/t_s)/(S_ref/t_ref) · (E_ref/E_s) (docs/design.md §7; Nicodemus et al., NBS
 Monograph 160, 1977, §4) with matched per-pixel geometry (calibration.geometry): every error
 common to the reference and the sample captures (lamp intensity, QE, aperture, gain, the flat's
 absolute scale) cancels.
@@ -24,7 +24,7 @@ added in quadrature. The relative σ_k/k is a *correlated* systematic of every s
 channel; the reduction adds it in quadrature to each sample's σ and also reports it in the
 Parquet metadata.
 
-Files (DESIGN §4, next to the darks and flats of calibration.darks): raw frames under
+Files (docs/design.md §4, next to the darks and flats of calibration.darks): raw frames under
 ``RUN/calibration/reference/``, listed in the manifest's calibration table with kind
 "reference" and the pose (``axes_rad``, measured arm angles as for a measurement capture), the
 bracket's exposure and the light monitor's reading; the target's description (what the rig

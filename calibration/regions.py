@@ -63,7 +63,7 @@ def region_means(
 
 
 @numba.njit(cache=True, nogil=True)
-def _sum_regions(rows, cols, b, pixels, where, scale, intensity, out):  # noqa: ANN001
+def _sum_regions(rows, cols, b, pixels, where, scale, intensity, out):
     flux, var, sat, off, wi, wo = pixels
     dist, point = where
     f_mean, var_mean, wi_mean, wo_mean, p_mean, saturated, masked = out

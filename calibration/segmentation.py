@@ -69,7 +69,7 @@ def polygon_mask(shape: tuple[int, int], corners_px: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _inside_convex(pts, inside):  # noqa: ANN001
+def _inside_convex(pts, inside):
     """inside[v, u] = (u, v) is on the inner side of every edge a→b of the counter-clockwise
     polygon `pts`: (b − a) × (p − a) ≥ 0, one pixel at a time (no (H, W) temporaries)."""
     n = pts.shape[0]
@@ -86,7 +86,7 @@ def _inside_convex(pts, inside):  # noqa: ANN001
 
 
 @numba.njit(cache=True, nogil=True)
-def _bilinear(img, u, v):  # noqa: ANN001, ANN202
+def _bilinear(img, u, v):
     """`img` at (u, v) = (column, row), bilinear, the edge values beyond the image (as
     scipy.ndimage.map_coordinates(order=1, mode="nearest"): tests/test_segmentation.py)."""
     h, w = img.shape
@@ -101,7 +101,7 @@ def _bilinear(img, u, v):  # noqa: ANN001, ANN202
 
 
 @numba.njit(cache=True, nogil=True)
-def _steps_across(ell, var_ell, p_out, p_in):  # noqa: ANN001, ANN202
+def _steps_across(ell, var_ell, p_out, p_in):
     """ℓ(p_out) − ℓ(p_in) and σ²_ℓ(p_out) + σ²_ℓ(p_in) at every (offset, position) of a side
     (p_* of shape (D, T, 2), (u, v) last): the four bilinear samples in one pass."""
     n_d, n_t = p_out.shape[0], p_out.shape[1]
@@ -222,7 +222,7 @@ def _outward(a: np.ndarray, b: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return -n_hat if np.dot(n_hat, (a + b) / 2 - centre) < 0 else n_hat
 
 
-def _side_edges(log_image, a, b, n_hat, search: _EdgeSearch):  # noqa: ANN001
+def _side_edges(log_image, a, b, n_hat, search: _EdgeSearch):
     """(t, edge offset, weight) of every segment of side a→b where an edge is found."""
     ell, var_ell = log_image
     length = float(np.hypot(*(b - a)))

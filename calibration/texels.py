@@ -1,11 +1,11 @@
 """Per-texel samples: which texel of the sample plane each pixel's surface point falls in.
 
 A square sample of side s (m) is cut into n × n texels of side t (n = ⌈s/t⌉ − the last row and
-column are partial when t does not divide s). The grid starts at the sample's (−s/2, −s/2)
-corner; texel (ix, iy) covers x ∈ [−s/2 + ix·t, −s/2 + (ix+1)·t), y likewise, and its index is
-iy·n + ix (+x across, +y up: the sample frame of DESIGN §3, and the layout of the simulator's
-textured sample). The `texel` column of a samples table holds that index (int32); the grid is
-in the Parquet metadata key ``gonio.texels`` = {"texel_mm", "n_x", "n_y", "size_m"}.
+column are partial when t does not divide s). The grid starts at the sample's (−s/2, −s/2) corner;
+texel (ix, iy) covers x ∈ [−s/2 + ix·t, −s/2 + (ix+1)·t), y likewise, and its index is iy·n + ix (+x
+across, +y up: the sample frame of docs/design.md §3, and the layout of the simulator's textured
+sample). The `texel` column of a samples table holds that index (int32); the grid is in the Parquet
+metadata key ``gonio.texels`` = {"texel_mm", "n_x", "n_y", "size_m"}.
 
 A samples file is never silently replaced by one made with other options: `check_replace`
 compares the calibration record of an existing file with the new one (the atomic-write rule of

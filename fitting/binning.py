@@ -7,7 +7,7 @@ their neighbours. Fitting every row costs memory (≈ 1 KB per row through the f
 Gaussian likelihood, loses almost nothing:
 
 * The file is streamed in batches of ``batch_rows`` rows (Parquet row groups); each batch passes
-  the same validation as :func:`fitting.samples.read_samples` (columns, finiteness, flags,
+  the same validation as :func:`brdfdata.samples.read_samples` (columns, finiteness, flags,
   channel names, the unit and range guards), so binning never accepts what a whole read refuses.
   Memory is one batch plus the bins, whatever the file's length.
 * A bin is a pair of cells, one per direction (ω_i, ω_o), per channel and per kind (exact,
@@ -16,7 +16,7 @@ Gaussian likelihood, loses almost nothing:
   flagged masked or below the horizon never enter a fit and are counted, not binned.
 * Exact rows of a bin become one sample: f̄ = Σ w f / Σ w, σ̄ = (Σ w)^(−1/2), w = 1/σ², at the
   w-weighted mean direction (re-normalised). For a Gaussian likelihood of data at one geometry
-  this carries exactly the group's information (the duplicate merge of fitting.formats.guards);
+  this carries exactly the group's information (the duplicate merge of brdfdata.samples.guards);
   across a bin the model is linear to first order around the mean direction, so the one error
   is the model's curvature over the bin: ε_b = Σw f̂(ω_j)/Σw − f̂(ω̄_b) ≈ ½ tr(H Σ_b), with Σ_b
   the within-bin direction spread. A parameter estimate moves by at most ‖ε/σ̄‖₂ posterior
@@ -46,9 +46,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from fitting.directions import normalize, vector_to_spherical
-from fitting.likelihood import dark_snr_of
-from fitting.samples import (
+from brdfdata.directions import normalize, vector_to_spherical
+from brdfdata.samples import (
     Flags,
     SamplesError,
     SampleTable,
@@ -56,6 +55,7 @@ from fitting.samples import (
     open_samples_file,
     table_from_arrow,
 )
+from fitting.likelihood import dark_snr_of
 from plumbing.hashing import sha256_file
 
 __all__ = [
@@ -175,7 +175,7 @@ class _Accumulator:
         }
         self._merge(key, values)
 
-    def keys_of(self, t: SampleTable, sat: np.ndarray, dark: np.ndarray):  # noqa: ANN201
+    def keys_of(self, t: SampleTable, sat: np.ndarray, dark: np.ndarray):
         """(packed bin key, kind) of every row of ``t`` (all usable)."""
         kind = np.where(sat, _KIND_SATURATED, np.where(dark, _KIND_DARK, _KIND_EXACT))
         names, chan_idx = np.unique(t.channel, return_inverse=True)
@@ -352,7 +352,7 @@ def binning_bias(
 def read_bounded(path: str | Path) -> SampleTable:
     """The samples at ``path`` for display (gonio report): whole up to AUTO_BIN_ROWS rows, else
     streamed and binned (AUTO_BIN_DEG), so memory stays bounded whatever the file's length."""
-    from fitting.samples import read_samples
+    from brdfdata.samples import read_samples
 
     if rows_in(path) <= AUTO_BIN_ROWS:
         return read_samples(path)

@@ -74,7 +74,7 @@ def amplitude_parameters(model, params: dict[str, float]) -> tuple[str, ...]:
     amps = tuple(n for n in model.parameter_names if n.startswith(_AMPLITUDE_PREFIXES))
     if not amps:
         return ()
-    from fitting.directions import uniform_hemisphere
+    from brdfdata.directions import uniform_hemisphere
 
     rng = np.random.default_rng(0)
     wi, wo = uniform_hemisphere(64, rng), uniform_hemisphere(64, rng)

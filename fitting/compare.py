@@ -412,24 +412,24 @@ def candidates(
     compare_shared: bool = False,
 ) -> list[Candidate]:
     """The fits a ``gonio fit --model`` call asks for. ``model="all"``: the registry's group
-    "all" (:func:`fitting.registry.group`; each model takes the ``options`` that apply to it and
-    have an allowed value, :func:`fitting.registry.applicable_options`; shared names a model
+    "all" (:func:`fitting.models.group`; each model takes the ``options`` that apply to it and
+    have an allowed value, :func:`fitting.models.applicable_options`; shared names a model
     lacks are dropped for it). A single model may be a registered name, a named variant or an
     alias; its options are validated by the registry (ValueError naming the allowed ones).
     ``m`` stands for the Phong exponent n where a model has no m; any other unknown shared
     name is an error for a single model. With ``compare_shared`` each model whose shared set
     is non-empty is fitted again with every parameter per channel (label suffix
     ``-per-channel``)."""
-    from fitting import registry
+    from fitting import models
 
-    names = registry.group("all") if model == "all" else [model]
+    names = models.group("all") if model == "all" else [model]
     out = []
     for name in names:
         if model == "all":
-            opts = registry.applicable_options(name, options)
+            opts = models.applicable_options(name, options)
         else:
             opts = {str(k): str(v) for k, v in (options or {}).items()}
-        m = registry.get(name, **opts)
+        m = models.get(name, **opts)
         sh = _shared_for(m, shared)
         unknown = set(shared) - set(m.parameter_names) - {"m"}
         if model != "all" and unknown:
@@ -475,7 +475,7 @@ def run_comparison(
     write fit-<label>.json/.h5 in ``out_dir``, score and rank them, write
     ``out_dir/compare.json``. ``on_fit(candidate, result)`` is called after each fit.
     Returns (ranked scores, {label: FitResult})."""
-    from fitting import models as registry
+    from fitting import models
     from fitting.fit import fit_samples
     from fitting.priors import PriorsConfig, load_priors
 
@@ -485,7 +485,7 @@ def run_comparison(
         priors = load_priors(priors)
     results, scores = {}, []
     for c in cands:
-        model = registry.get(c.model, **c.options)
+        model = models.get(c.model, **c.options)
         fx, pr = restrict(model, base.fix, priors)
         opts = base.replace(
             model=c.model, model_options=dict(c.options), shared=c.shared, fix=fx, priors=pr

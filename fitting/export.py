@@ -29,7 +29,7 @@ Anything else (Phong family, v-cavity or exact-Λ Beckmann Smith shadowing, Schl
   active variant before loading (``simulator.materials.register_model_bsdf()``);
 * on disk (:func:`export_material`, what ``gonio fit`` writes) a *tabulated fallback* that
   plain Mitsuba loads: the model tabulated as an RGL tensor file beside the XML
-  (:mod:`fitting.formats.rgl_tabulate`) and a ``measured`` BSDF referencing it, with one line
+  (:mod:`brdfdata.formats.rgl_tabulate`) and a ``measured`` BSDF referencing it, with one line
   saying how close the table is to the model.
 
 Parameters held fixed in the fit (``--fix``, the fit JSON's ``fixed``) are exported with the
@@ -60,6 +60,7 @@ __all__ = [
     "write_material_xml",
     "channel_values",
     "fit_evaluator",
+    "export_fit",
     "is_builtin",
     "builtin_reason",
 ]
@@ -277,7 +278,7 @@ def export_material(fit, path: str | os.PathLike, estimate: str = "median") -> E
     """Write the material for plain Mitsuba 3 at ``path`` (XML): the built-in where one is
     exact, else the tabulated fallback ``<path stem>.bsdf`` referenced by a ``measured`` BSDF
     (relative file name: keep the two files together)."""
-    from fitting.formats.rgl_tabulate import TabulateOptions, closeness, write_tabulated
+    from brdfdata.formats.rgl_tabulate import TabulateOptions, closeness, write_tabulated
 
     path = Path(path)
     d = _fit_dict(fit)
@@ -306,3 +307,25 @@ def export_material(fit, path: str | os.PathLike, estimate: str = "median") -> E
 def write_material_xml(fit, path: str | os.PathLike, estimate: str = "median") -> Path:
     """Write the material for plain Mitsuba 3 (:func:`export_material`); returns the XML path."""
     return export_material(fit, path, estimate).xml_path
+
+
+def export_fit(fmt: str, source: str | os.PathLike, out: str | os.PathLike, angles: str = "rad"):
+    """``gonio export merl FIT.json``: the fitted model (medians) tabulated at every MERL bin
+    centre. Returns (path, one line describing what was written); other formats are refused in
+    one line, as :func:`brdfdata.formats.convert.export_file` refuses them."""
+    from brdfdata.formats import merl
+    from brdfdata.formats.common import FormatError
+    from brdfdata.formats.convert import check_export
+    from fitting.result import read_fit
+
+    source, out = Path(source), Path(out)
+    check_export(fmt, angles)
+    if fmt == "csv":
+        raise FormatError(f"{source}: export csv writes a samples table; give SAMPLES.parquet")
+    if angles != "rad":
+        raise FormatError("--angles applies to csv only (MERL bins are angles by definition)")
+    fit = read_fit(source)
+    merl.write_merl(out, merl.tabulate(fit_evaluator(fit)))
+    n = int(np.sum(merl.read_merl(out).raw[0] >= 0))
+    opts = json.dumps(fit.options, sort_keys=True)
+    return out, f"{fit.model} {opts} tabulated at {n} bin centres (medians)"

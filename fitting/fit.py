@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from brdfdata.samples import SampleTable
 from fitting import models
 from fitting.budget import add_systematic, left_out_words, read_budget
 from fitting.likelihood import Likelihood, dark_snr_of
@@ -56,7 +57,6 @@ from fitting.nuisance import (
 )
 from fitting.priors import DISCREPANCY, ParameterSpace, PriorsConfig, albedo_prior, load_priors
 from fitting.result import FitResult
-from fitting.samples import SampleTable
 from fitting.verdicts import judge
 
 __all__ = ["FitOptions", "best_approximation", "fit_samples", "summarise"]
@@ -331,7 +331,7 @@ def fit_samples(
 SEARCH_ROWS = 50_000
 
 
-def _search_then_polish(table: SampleTable, lik: Likelihood, opt: FitOptions):  # noqa: ANN202
+def _search_then_polish(table: SampleTable, lik: Likelihood, opt: FitOptions):
     """The least-squares fit of `lik`: the multi-start search on all rows of a table up to
     SEARCH_ROWS, else on a seeded random subsample of that size, polished from its best start
     on all rows."""
@@ -346,7 +346,7 @@ def _search_then_polish(table: SampleTable, lik: Likelihood, opt: FitOptions):  
     return _polish(lik, search.x, opt, len(table))
 
 
-def _polish(lik: Likelihood, x0: np.ndarray, opt: FitOptions, rows: int):  # noqa: ANN202
+def _polish(lik: Likelihood, x0: np.ndarray, opt: FitOptions, rows: int):
     """Least squares from the one start `x0`, in the optimum's basin: above SEARCH_ROWS rows
     on normal equations summed over blocks of rows (fitting.lsq.polish_in_blocks: the solver's
     per-row arrays, ~5 copies of the n × k Jacobian in least_squares, are never held)."""
@@ -356,7 +356,7 @@ def _polish(lik: Likelihood, x0: np.ndarray, opt: FitOptions, rows: int):  # noq
     return fit_least_squares(lik, starts=x0[None, :], **kw)
 
 
-def _with_budget(space, draws, x_map, model, table) -> tuple[dict, list[str]]:  # noqa: ANN001
+def _with_budget(space, draws, x_map, model, table) -> tuple[dict, list[str]]:
     """(parameter summaries with sd_stat / sd_sys / sd_total, the words on the samples' budget):
     from the nuisance parameters' draws (fitting.nuisance), or the shared scale added after the
     fit (fitting.budget) when the fit carries none."""
@@ -453,7 +453,7 @@ def best_approximation(table: SampleTable, options: FitOptions | None = None) ->
     return out
 
 
-def _chain_notes(res, h5) -> list[str]:  # noqa: ANN001
+def _chain_notes(res, h5) -> list[str]:
     """One line when the run replaced a stored chain of another problem (never silently)."""
     if not getattr(res, "replaced_steps", 0) or h5 is None:
         return []
@@ -463,7 +463,7 @@ def _chain_notes(res, h5) -> list[str]:  # noqa: ANN001
     ]
 
 
-def _walkers_covariance(cov: np.ndarray, specs, x: np.ndarray, coords) -> np.ndarray:  # noqa: ANN001
+def _walkers_covariance(cov: np.ndarray, specs, x: np.ndarray, coords) -> np.ndarray:
     """The covariance the first walkers are drawn from (fitting.mcmc.initial_ball): the
     least-squares (Laplace) covariance with its correlations, in the sampler's coordinates
     (C_y = T C Tᵀ, T = ∂y/∂x at x by central differences); a parameter least squares held gets
@@ -486,7 +486,7 @@ def _walkers_covariance(cov: np.ndarray, specs, x: np.ndarray, coords) -> np.nda
     return t @ c @ t.T
 
 
-def _from_sampler(res, coords, ensembles: int):  # noqa: ANN001, ANN202
+def _from_sampler(res, coords, ensembles: int):
     """The chain in θ from the sampler's coordinates (fitting.nuisance.SamplerCoordinates):
     ln p without the Jacobian, τ / ESS / R̂ recomputed on θ (R̂ across the ensembles)."""
     res.log_prob = res.log_prob - coords.log_jacobian(res.chain)
@@ -610,7 +610,7 @@ def model_values(lik: Likelihood, x: np.ndarray, table: SampleTable) -> np.ndarr
     return out
 
 
-def _correct_binning(table: SampleTable, lik: Likelihood, x, source):  # noqa: ANN001, ANN202
+def _correct_binning(table: SampleTable, lik: Likelihood, x, source):
     """(the binned table with each exact bin's mean corrected by the model's curvature over the
     bin at ``x``, f̄_b − ε_b, and ε_b/σ̄_b) — fitting.binning.binning_bias. The correction is
     exact for the model at ``x``; near ``x`` (within the posterior) it changes to second order."""
@@ -623,7 +623,7 @@ def _correct_binning(table: SampleTable, lik: Likelihood, x, source):  # noqa: A
     return corrected, eps
 
 
-def _binning_diagnostics(table, lik, x_map, source, eps_corrected) -> dict:  # noqa: ANN001
+def _binning_diagnostics(table, lik, x_map, source, eps_corrected) -> dict:
     """What binning did and — with the file it came from — what it still moves after the
     curvature correction: the bias left, ε(x_map) − ε(x_lsq), as the bound ‖·‖ on the shift of
     any estimate and the linearised shift of each parameter, Δx = (JᵀJ)⁻¹Jᵀ(ε/σ̄) with J the

@@ -3,9 +3,9 @@ errors of a fitted model against the truth on it (how the real-materials study r
 
 Metrics (`heldout_errors`):
 
-- Ngan et al.'s cosine-weighted L2 ("Experimental Analysis of BRDF Models", EGSR 2005; DESIGN
-  §6): plain L2 on f·cos θ_i weighted by sin θ_i sin θ_o, as a mean over the grid (an RMS per
-  unit solid angle on a regular (θ_i, θ_o, Δφ) grid), in sr⁻¹:
+- Ngan et al.'s cosine-weighted L2 ("Experimental Analysis of BRDF Models", EGSR 2005;
+  docs/design.md §6): plain L2 on f·cos θ_i weighted by sin θ_i sin θ_o, as a mean over the grid (an
+  RMS per unit solid angle on a regular (θ_i, θ_o, Δφ) grid), in sr⁻¹:
       E_Ngan = √( Σ_j w_j ((f̂_j − f_j) cos θ_i,j)² / Σ_j w_j ),   w_j = sin θ_i,j sin θ_o,j;
 - the relative RMS of f·cos θ_i, the same sum normalised by the truth's own norm (so materials
   of very different brightness compare):
@@ -54,7 +54,7 @@ def heldout_grid(
     angle integral up to the constant cell size. 1° × 2.5° cells resolve a lobe of width ~2°
     (nickel's m = 0.042) to a few samples.
     """
-    from fitting.directions import spherical_to_vector
+    from brdfdata.directions import spherical_to_vector
 
     ti = np.radians(np.asarray(theta_i_deg, dtype=np.float64))
     n_o = int(round(theta_o_max_deg / theta_o_step_deg))

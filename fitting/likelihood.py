@@ -60,11 +60,11 @@ from functools import cached_property
 import numpy as np
 from scipy.special import gammaln, log_ndtr
 
-from fitting.directions import spherical_to_vector
-from fitting.kernels import gauss_discrepancy_sum
+from brdfdata.directions import spherical_to_vector
+from brdfdata.samples import Flags, SampleTable
+from fitting.likelihood_kernels import gauss_discrepancy_sum
 from fitting.nuisance import ANGLE_NUISANCES, arm_deltas, arm_rows, measured_geometry, to_si
 from fitting.priors import ParameterSpace
-from fitting.samples import Flags, SampleTable
 
 __all__ = [
     "ChannelData",
@@ -143,7 +143,7 @@ class ChannelData:
 def _weighted(d: ChannelData, fm: np.ndarray, weighting: str) -> np.ndarray:
     """Residuals (W, n) of ``d``'s exact rows for their model values ``fm`` (W, n).
 
-    ``sigma``: r = (f − f̂)/σ.  ``ngan``: Ngan et al. 2005's metric (DESIGN §6) — plain L2 on
+    ``sigma``: r = (f − f̂)/σ.  ``ngan``: Ngan et al. 2005's metric (docs/design.md §6) — plain L2 on
     f·cos θ_i weighted by sin θ_i sin θ_o, i.e. r = √(sin θ_i sin θ_o) · (f − f̂) cos θ_i."""
     ex = d.exact
     diff = d.f[ex] - fm
@@ -457,7 +457,7 @@ class Likelihood:
                 r /= d.sigma2
                 ll = -0.5 * (r.sum(axis=1) + np.sum(np.log(d.sigma**2)) + d.f.size * _LN_2PI)
             else:
-                # Fused numba pass (fitting.kernels): Σ r²/v + ln v with v = σ² + (s f̃)².
+                # Fused numba pass (fitting.likelihood_kernels): Σ r²/v + ln v with v = σ² + (s f̃)².
                 ref2 = ref if ref.ndim == 2 else ref[None, :]
                 acc = gauss_discrepancy_sum(
                     d.f,
@@ -546,8 +546,8 @@ class Likelihood:
     def residuals(self, theta: np.ndarray, weighting: str = "sigma") -> np.ndarray:
         """Residual vector over exact (uncensored) samples for one θ (D,).
 
-        ``sigma``: r = (f − f̂)/σ.  ``ngan``: Ngan et al. 2005's metric (DESIGN §6) — plain L2 on
-        f·cos θ_i weighted by sin θ_i sin θ_o, i.e. r = √(sin θ_i sin θ_o) · (f − f̂) cos θ_i.
+        ``sigma``: r = (f − f̂)/σ.  ``ngan``: Ngan et al. 2005's metric (docs/design.md §6) — plain
+        L2 on f·cos θ_i weighted by sin θ_i sin θ_o, i.e. r = √(sin θ_i sin θ_o) · (f − f̂) cos θ_i.
         Non-finite model values give a large finite residual so the optimiser backs off
         (likelihood._weighted).
         """

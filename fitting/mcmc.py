@@ -1,4 +1,4 @@
-"""emcee sampling with autocorrelation-based burn-in and stopping (issue 7 §4, DESIGN §7).
+"""emcee sampling with autocorrelation-based burn-in and stopping (issue 7 §4, docs/design.md §7).
 
 * Moves: differential evolution by default (fitting.moves: why not emcee's snooker mix).
 * The ensemble starts in a small ball around the least-squares optimum (scaled by the LSQ
@@ -304,7 +304,7 @@ def _open_chain(store: ChainFile | None, walkers: int, ndim: int):
     return backend, False, replaced
 
 
-def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool, store=None):  # noqa: ANN001
+def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool, store=None):
     """Run in chunks until a stop rule holds; (τ, stop reason). With ``store`` the chain is
     saved after every chunk and when the run is interrupted or fails (a later fit continues
     it); a save that fails (a full disk) leaves the previous one and stops the run."""

@@ -90,7 +90,7 @@ _REGION_BLOCK = 65536
 
 def region_index(wi, wo) -> np.ndarray:
     """Index 0…8 of each (ω_i, ω_o) pair's region: 3 · (θ_h band) + (θ_d band)."""
-    from fitting.rusinkiewicz import to_half_diff
+    from brdfdata.rusinkiewicz import to_half_diff
 
     wi = np.asarray(wi, dtype=np.float64)
     wo = np.asarray(wo, dtype=np.float64)

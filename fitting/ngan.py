@@ -16,7 +16,7 @@ with D the π-normalised Beckmann NDF exp(−tan²θ_h/m²)/(π m² cos⁴θ_h),
 (bbm ``ndf::beckmann`` with Normalize = true); G the V-groove min{1, 2 cos θ_h cos θ_i/(ω_i·h),
 2 cos θ_h cos θ_o/(ω_o·h)} (Torrance & Sparrow 1967); and F Schlick's F₀ + (1 − F₀)(1 − ω·h)⁵
 where F₀ = ``eta`` — bbm stores Ngan's Fresnel parameter as a *normal-incidence reflectance*
-(``ior::reflectance``), not an index of refraction (DESIGN §6: nickel F₀ = 0.733).
+(``ior::reflectance``), not an index of refraction (docs/design.md §6: nickel F₀ = 0.733).
 
 Our ``torrance-sparrow`` (fitting.models) is f = kd/π + ks · D · G · F / (4 cos θ_i cos θ_o)
 with the same π-normalised D, the same V-cavity G and the same Schlick F, so with options
@@ -39,6 +39,7 @@ import os
 import re
 from pathlib import Path
 
+from fitting.models.catalogue import COOK_TORRANCE_OPTIONS
 from plumbing.inputs import MiB, read_input_text
 
 __all__ = [
@@ -119,9 +120,9 @@ def read_ngan_fits(path: str | os.PathLike) -> dict[str, dict[str, Value]]:
 
 def ngan_fits_path(model: str = "cooktorrance", data_dir: str | os.PathLike | None = None) -> Path:
     """The ``ngan_<model>.fit`` file: in ``data_dir`` (a folder holding it or ``brdf_fits/``),
-    else ``brdf_fits/`` found by the data resolver (fitting.data_paths: $GONIO_DATA, the
+    else ``brdf_fits/`` found by the data resolver (brdfdata.data_paths: $GONIO_DATA, the
     repository's data/, an installed wheel's share/gonio/data)."""
-    from fitting.data_paths import find_data
+    from brdfdata.data_paths import find_data
 
     if model not in NGAN_MODELS:
         raise ValueError(f"unknown Ngan model {model!r}; choose one of {', '.join(NGAN_MODELS)}")
@@ -160,10 +161,6 @@ def ngan_cook_torrance_parameters(entry: dict[str, Value]) -> dict[str, Value]:
         "m": float(entry["roughness"]),  # type: ignore[arg-type]
         "f0": float(entry["eta"]),  # type: ignore[arg-type]
     }
-
-
-# Our torrance-sparrow options that reproduce NganCookTorrance exactly.
-COOK_TORRANCE_OPTIONS = {"distribution": "beckmann", "shadowing": "v-cavity", "fresnel": "schlick"}
 
 
 def ngan_scene_material(

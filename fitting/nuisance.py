@@ -43,8 +43,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from brdfdata.directions import camera_axes, normalize
 from fitting.budget import scale_sigma
-from fitting.directions import camera_axes, normalize
 
 __all__ = [
     "SharedErrors",
@@ -96,7 +96,7 @@ ANGLE_TERMS = {
 _SI = {"light_distance_mm": 1e-3}
 
 
-def to_si(name: str, value):  # noqa: ANN001, ANN201
+def to_si(name: str, value):
     """A nuisance's value in SI (radians for angles, metres for the lamp's distance)."""
     return np.asarray(value, dtype=np.float64) * _SI[name] if name in _SI else np.radians(value)
 
@@ -194,11 +194,11 @@ def shared_errors(
     return out if out else None
 
 
-def is_nuisance(spec) -> bool:  # noqa: ANN001 (fitting.priors.ParameterSpec)
+def is_nuisance(spec) -> bool:  # fitting.priors.ParameterSpec
     return getattr(spec, "prior_sigma", None) is not None
 
 
-def _rotate_elevation(w: np.ndarray, arm_phi: np.ndarray, delta) -> np.ndarray:  # noqa: ANN001
+def _rotate_elevation(w: np.ndarray, arm_phi: np.ndarray, delta) -> np.ndarray:
     """Directions w (N, 3) turned by δ (radians; scalar or (W, 1)) about the horizontal axis
     a = (−sin φ, cos φ, 0) normal to the arm's vertical plane (Rodrigues): positive δ raises
     the arm away from the normal, toward its azimuth φ."""
@@ -208,7 +208,7 @@ def _rotate_elevation(w: np.ndarray, arm_phi: np.ndarray, delta) -> np.ndarray: 
     return w * c + np.cross(a, w) * s + a * (np.sum(a * w, axis=-1)[..., None] * (1.0 - c))
 
 
-def _turn_camera(v: np.ndarray, arm_phi_i, arm_phi_o, delta_rad: dict, kinematics: str):  # noqa: ANN001
+def _turn_camera(v: np.ndarray, arm_phi_i, arm_phi_o, delta_rad: dict, kinematics: str):
     """Vectors v (N, 3) carried by the camera arm when its angles are off by `delta_rad`: its
     elevation about the axis normal to its plane, then its azimuth about the vertical."""
     d_o = delta_rad.get("camera_theta", 0.0)
@@ -289,7 +289,7 @@ def _camera_ray(ray: np.ndarray, cam: np.ndarray, cam_new: np.ndarray) -> np.nda
     """A pixel's ray (unit, camera → sample) once the camera stands at `cam_new` instead of
     `cam`, still looking at the sample's centre: the same pixel, so the same components on the
     camera's image axes, which the rig's look-at rule sets from where the camera looks
-    (fitting.directions.camera_axes). Away from the normal that is the arm's rotation itself;
+    (brdfdata.directions.camera_axes). Away from the normal that is the arm's rotation itself;
     within 2.6° of it the rule holds image up at +y, so an azimuth error does not turn the
     image there (nor, for now, does the arm: docs/lab-setup.md, the look-at rule's limit)."""
     f_old, f_new = normalize(-cam), normalize(-cam_new)
@@ -390,7 +390,7 @@ def carried_words(shared: SharedErrors, names: list[str], natural_draws: np.ndar
     )
 
 
-def with_nuisances(space, shared: SharedErrors):  # noqa: ANN001, ANN201 (ParameterSpace)
+def with_nuisances(space, shared: SharedErrors):  # ParameterSpace
     """`space` with the nuisance parameters of `shared` appended (module docstring)."""
     import dataclasses
 
@@ -470,7 +470,7 @@ class SamplerCoordinates:
                 out = out - y[..., s]
         return out
 
-    def wrap(self, log_prob):  # noqa: ANN001, ANN201
+    def wrap(self, log_prob):
         """ln p_y(y) = ln p_x(x(y)) + ln |∂x/∂y|."""
 
         def log_prob_y(y: np.ndarray) -> np.ndarray:
@@ -490,7 +490,7 @@ class SamplerCoordinates:
         return ylo, yhi
 
 
-def sampler_coordinates(space, model, x: np.ndarray) -> SamplerCoordinates | None:  # noqa: ANN001
+def sampler_coordinates(space, model, x: np.ndarray) -> SamplerCoordinates | None:
     """The coordinates for `space` (None: sample θ itself): every amplitude of a channel with
     a scale nuisance, when the model is homogeneous in its amplitudes at x (checked)."""
     from fitting.budget import amplitude_parameters
@@ -525,7 +525,7 @@ def arm_positions_known(metadata: dict) -> bool:
     )
 
 
-def arm_rows(table) -> dict[str, np.ndarray]:  # noqa: ANN001 (SampleTable)
+def arm_rows(table) -> dict[str, np.ndarray]:  # SampleTable
     """Per row: the arms' azimuths (``phi_i``, ``phi_o``), the sines of the elevation axes
     (``sin_light_theta``, ``sin_camera_theta``) and the side of each axis' last move
     (``side_<axis>``: ±1, 0 unknown), from the metadata ``gonio.arm_poses`` (calibration, per

@@ -1,4 +1,4 @@
-"""Parameter space and priors for BRDF fits (issue 7, DESIGN §4 naming).
+"""Parameter space and priors for BRDF fits (issue 7, docs/design.md §4 naming).
 
 A model parameter ``p`` fitted per channel becomes ``p_CH`` (``kd_R``); a shared one keeps its
 bare name (``m``). Parameters whose :class:`fitting.models.Parameter` has ``log=True`` are

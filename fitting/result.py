@@ -1,4 +1,4 @@
-"""The fit result contract, ``fit-<model>.json`` (DESIGN §4).
+"""The fit result contract, ``fit-<model>.json`` (docs/design.md §4).
 
 ::
 
@@ -134,7 +134,7 @@ class FitResult:
     def value(self, name: str, key: str = "median") -> float:
         return float(self.parameters[name][key])
 
-    def predict(self, wi, wo, channels=None, *, x=None, estimate: str = "map"):  # noqa: ANN001
+    def predict(self, wi, wo, channels=None, *, x=None, estimate: str = "map"):
         """f̂ (N, C) in sr⁻¹ of the fitted model at direction pairs `wi`, `wo` (N, 3), per
         channel (default: the fitted ones): at the `estimate` of every parameter ("map",
         "median", ...; fixed parameters at their values), or at `x`, a point of the fit's
@@ -172,7 +172,7 @@ class FitResult:
         return atomic_write_bytes(path, text.encode(), overwrite=True)
 
 
-def _is_number(v) -> bool:  # noqa: ANN001
+def _is_number(v) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool)
 
 
@@ -258,7 +258,7 @@ def read_fit(path: str | os.PathLike) -> FitResult:
     )
 
 
-def check_samples_match(fit_path, fit: dict | FitResult, samples_path, samples_sha256) -> None:  # noqa: ANN001
+def check_samples_match(fit_path, fit: dict | FitResult, samples_path, samples_sha256) -> None:
     """Refuse, in one line, a samples file other than the one the fit was made from (issue 22:
     a report of fit F drawn over other data would show residuals that mean nothing). Fits that
     recorded no hash (older files, in-memory fits) pass."""

@@ -24,8 +24,8 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
+from brdfdata.samples import SamplesError, SampleTable
 from fitting.fit import FitOptions, fit_samples
-from fitting.samples import SamplesError, SampleTable
 
 __all__ = [
     "QUANTILES",

@@ -98,7 +98,7 @@ CHI2_SIZE_FAIL = 1.5
 #: The posterior of s piles at its upper bound 1 when the model misses the data by ≥ 100 %:
 #: its width then comes from the prior edge, not the data.
 #: A median s above 10 % of f means the parameters describe a compromise between regions the
-#: model cannot fit together (DESIGN §6: published fits of real materials reach ~10 %).
+#: model cannot fit together (docs/design.md §6: published fits of real materials reach ~10 %).
 DISCREPANCY_WARN = 0.1
 #: A bound is "piled at" when it lies within this fraction of the posterior's own 95 % width
 #: of the 2.5 % (or 97.5 %) quantile: a Gaussian posterior untouched by the bound has its
@@ -107,7 +107,7 @@ BOUND_REACH = 0.1
 #: Posterior ≈ prior: the central 68 % interval (in the sampled space, where every prior is
 #: flat) spans ≥ 90 % of the prior's own central 68 % interval.
 IDENTIFIED_RATIO = 0.9
-#: Albedo tolerance: the half-vector quadrature (fitting.properties, n = 64) is accurate to
+#: Albedo tolerance: the half-vector quadrature (fitting.models.properties, n = 64) is accurate to
 #: 2e-3 (property_table's tolerance); beyond 1 % the excess is more than a typical absolute
 #: calibration error (~1 %) and a physically impossible fit (fail).
 ALBEDO_QUADRATURE = 2e-3
@@ -416,9 +416,9 @@ def identified_verdict(parameters: Mapping[str, Mapping], specs: Sequence[Parame
 def energy_verdict(model, channel_params: Mapping[str, Mapping[str, float]]) -> dict:
     """Largest directional albedo of the fitted model over θ_i 0…89° per channel.
 
-    a(ω_i) = ∫ f_r cos θ_o dω_o by half-vector quadrature (fitting.properties; it integrates
+    a(ω_i) = ∫ f_r cos θ_o dω_o by half-vector quadrature (fitting.models.properties; it integrates
     over ω_i at fixed ω_o, the same for a reciprocal model)."""
-    from fitting.properties import directional_albedo
+    from fitting.models.properties import directional_albedo
 
     worst_ch, worst_a, worst_t = "", -math.inf, 0.0
     for ch, params in channel_params.items():
@@ -473,9 +473,9 @@ BINNING_FAIL_SD = 1.0
 
 
 def lobes_verdict(parameters: Mapping, draws: Mapping | None = None) -> dict:
-    """Whether a two-lobe fit's lobes are distinguishable (fitting.multilobe.check_lobes): a
+    """Whether a two-lobe fit's lobes are distinguishable (fitting.models.multilobe.check_lobes): a
     warning naming why when they are not — the second lobe is then the prior's, not the data's."""
-    from fitting.multilobe import check_lobes
+    from fitting.models.multilobe import check_lobes
 
     flat = None
     if draws is not None:
@@ -548,7 +548,7 @@ def judge(fit, lik, mcmc) -> tuple[list[dict], dict]:
     ]
     if "binning" in fit.diagnostics:  # only binned fits (fitting.binning) have this verdict
         verdicts.append(binning_verdict(fit.diagnostics["binning"]))
-    if "m_ratio" in fit.parameters:  # two-lobe fits (fitting.multilobe) only
+    if "m_ratio" in fit.parameters:  # two-lobe fits (fitting.models.multilobe) only
         draws = fit.extras.get("draws")
         natural = None if draws is None else space.natural_dict(draws)
         verdicts.append(lobes_verdict(fit.parameters, natural))

@@ -25,6 +25,7 @@ from acquisition.rig import build_rig
 from acquisition.run_document import RunDocument, device_difference
 from acquisition.runner import RunOutcome, fmt_duration, run_acquisition, stop_requests
 from acquisition.store import RunStore
+from gonio import version
 from gonio.backends import prepare_backends
 from gonio.errors import UserError
 from gonio.plain_text import printable
@@ -56,15 +57,6 @@ def config_dir() -> Path:
     here = Path(__file__).resolve().parent
     shipped = here / "configs"
     return shipped if shipped.is_dir() else here.parent / "configs"
-
-
-def _version() -> str:
-    from importlib.metadata import version
-
-    try:
-        return version("gonio")
-    except Exception:  # running from a source tree without an install
-        return "0+unknown"
 
 
 @dataclass
@@ -201,7 +193,7 @@ def acquire(out: Path | str, spec: AcquireSpec | None = None) -> AcquireResult:
     return AcquireResult(out, outcome, resumed, elapsed, estimate.total_max_s, extra)
 
 
-def _run(out: Path, store, what, world, hands, progress: bool) -> RunOutcome:  # noqa: ANN001
+def _run(out: Path, store, what, world, hands, progress: bool) -> RunOutcome:
     """Open the devices, freeze run.toml for a new run, and run the plan (always closing)."""
     rig, plan_cfg, plan = what
     rig_dev = build_rig(rig)
@@ -210,7 +202,7 @@ def _run(out: Path, store, what, world, hands, progress: bool) -> RunOutcome:  #
             doc = RunDocument.new(
                 rig,
                 plan_cfg,
-                version=_version(),
+                version=version(),
                 device=rig_dev.camera.describe(),
                 scene=None if world is None else world.scene.model_dump(mode="json"),
             )
@@ -434,7 +426,7 @@ class SpineSpec:
 class SpineResult:
     run_dir: Path
     acquired: AcquireResult
-    table: Any  # fitting.samples.SampleTable
+    table: Any  # brdfdata.samples.SampleTable
     fit: Any  # fitting.result.FitResult | None
     timings_s: dict[str, float]  # wall seconds per stage: acquire, calibrate, fit
     lab_time_s: float  # on the rig's clock
@@ -519,7 +511,7 @@ def demo(out: Path | None, scene_path: Path | None, quick: bool, progress: bool 
     return report
 
 
-def demo_fit_choice(scene: Any, quick: bool):  # noqa: ANN201 - (FitOptions, str)
+def demo_fit_choice(scene: Any, quick: bool):  # FitOptions, str
     """(fit options, one line saying what is fitted) for the demo of `scene`: the model and
     options its material *is* (gonio.backends.scene_fit_model), else the demo's own model
     (demo_fit_options) with the statement that no parameter truth exists for the scene."""
@@ -542,7 +534,7 @@ def demo_fit_choice(scene: Any, quick: bool):  # noqa: ANN201 - (FitOptions, str
     )
 
 
-def demo_fit_options(quick: bool):  # noqa: ANN201 - fitting.fit.FitOptions
+def demo_fit_options(quick: bool):
     """The seed's Torrance-Sparrow form f = kd/π + ks·D G F/(π cos θi cos θo) with its
     Beckmann D, plus a Lambertian term. Two options match what Mitsuba renders: the specular
     part is a perfect conductor (F ≡ 1, fresnel="none"), and Mitsuba shadows with the Smith G1

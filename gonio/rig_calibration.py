@@ -98,8 +98,8 @@ def _capture_view(rig_dev, plan: RigCalibrationPlan, desc: dict, frames_dir: Pat
 
 def calibrate_rig(
     rig_cfg: RigConfig,
-    rig_dev,  # noqa: ANN001 - acquisition.rig.Rig, built by the caller
-    board,  # noqa: ANN001 - calibration.camera_model.BoardSpec
+    rig_dev,  # acquisition.rig.Rig, built by the caller
+    board,  # calibration.camera_model.BoardSpec
     out: Path,
     operator: Operator,
     plan: RigCalibrationPlan | None = None,

@@ -54,7 +54,7 @@ class DeviceCheck:
     problem: str = ""
 
 
-def _axis_angle_deg(axis, ticks: int) -> float:  # noqa: ANN001 - AxisConfig
+def _axis_angle_deg(axis, ticks: int) -> float:  # AxisConfig
     """Axis angle = zero_offset_deg + direction · (ticks / 4096 · 360°) / gear_ratio."""
     ticks = ticks - (1 << 32) if ticks >= 1 << 31 else ticks  # the register is two's complement
     return axis.zero_offset_deg + axis.direction * ticks * 360.0 / 4096 / axis.gear_ratio

@@ -3,7 +3,7 @@ scene-material truth (simulator.truth) share.
 
 Mitsuba's ``bsdf.eval(ctx, si, w)`` returns f_r(si.wi, w)·cos θ_w; the direct integrator calls
 it with si.wi towards the camera and w towards the light, so we do the same and divide by
-cos θ_i (DESIGN §3). Below the horizon (either cosine ≤ 0) f_r = 0.
+cos θ_i (docs/design.md §3). Below the horizon (either cosine ≤ 0) f_r = 0.
 """
 
 from __future__ import annotations

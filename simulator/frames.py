@@ -2,7 +2,7 @@
 
 EXR (OpenEXR 3.5 Python API): float32 pixels in an "RGB" (or single "Y") channel group, and the
 capture metadata as a JSON string header attribute ``gonio`` — a Python float attribute would be
-stored as float32 and lose precision (DESIGN §7), a JSON string is exact.
+stored as float32 and lose precision (docs/design.md §7), a JSON string is exact.
 
 DNG: `acquisition.frame_files.encode_dng`, the one DNG writer, shared with the real drivers that
 receive bare pixels (re-exported here); the simulated sensor is "raw RGB" (identity colour

@@ -31,7 +31,7 @@ import numpy as np
 
 from acquisition.clock import Clock
 from simulator.dxl.faults import Reply
-from simulator.urlhandler import install
+from simulator.serial_urls import install
 
 __all__ = ["EmulatedLight", "register_light", "get_light", "unregister_light"]
 

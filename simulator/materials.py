@@ -1,10 +1,10 @@
 """Scene materials as Mitsuba 3 BSDFs: built-in plugins, RGL measured tensors, and any
 `fitting.models` model wrapped as a Python BSDF.
 
-Conventions (DESIGN §3, §7): Mitsuba's ``bsdf.eval(ctx, si, w)`` returns f_r(si.wi, w)·cos θ_w, with
-``si.wi`` towards the camera and ``w`` towards the light when the direct integrator shades a point.
-`fitting.models` take ``wi`` towards the light and ``wo`` towards the camera and return f_r alone.
-So the wrapper evaluates ``model.evaluate(params, wi=w, wo=si.wi)·cos θ_w``.
+Conventions (docs/design.md §3, §7): Mitsuba's ``bsdf.eval(ctx, si, w)`` returns f_r(si.wi, w)·cos
+θ_w, with ``si.wi`` towards the camera and ``w`` towards the light when the direct integrator shades
+a point. `fitting.models` take ``wi`` towards the light and ``wo`` towards the camera and return f_r
+alone. So the wrapper evaluates ``model.evaluate(params, wi=w, wo=si.wi)·cos θ_w``.
 
 The Python BSDF (``ModelBSDF``) moves the lanes to numpy, calls the model's numba kernel and moves
 the result back. That needs concrete arrays, so the renderer runs such scenes with drjit's
@@ -32,6 +32,7 @@ from simulator.scene import (
     RoughPlasticMaterial,
     TexturedMaterial,
 )
+from simulator.texture import textured_dict
 
 __all__ = [
     "material_dict",
@@ -120,8 +121,6 @@ def material_dict(material) -> dict:
         register_model_bsdf()
         return {"type": MODEL_PLUGIN, "spec": material.model_dump_json()}
     if isinstance(material, TexturedMaterial):
-        from simulator.texture import textured_dict
-
         return textured_dict(material)
     if isinstance(material, BlendMaterial):
         # Mitsuba blendbsdf: weight 0 selects the first nested BSDF, 1 the second, i.e.

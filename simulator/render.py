@@ -2,7 +2,7 @@
 
 One Mitsuba scene is loaded per material; each pose only moves the lamp and the camera
 through ``mi.traverse`` + ``params.update()`` (no reload, no re-tracing of kernels), which is what
-makes a 64×64 capture cost a few ms in ``llvm_ad_rgb`` (DESIGN §7).
+makes a 64×64 capture cost a few ms in ``llvm_ad_rgb`` (docs/design.md §7).
 
 Radiometry: pixels are radiance L in W m⁻² sr⁻¹ (the ``hdrfilm`` value with a ``box`` pixel filter;
 no exposure, no vignetting — the sensor model adds those). With a point light of radiant intensity
@@ -132,7 +132,7 @@ def _texel_centres(n: int) -> np.ndarray:
     return 2.0 * (np.arange(n) + 0.5) / n - 1.0
 
 
-def _bitmap_texture(mi, data: np.ndarray) -> dict:  # noqa: ANN001 - the mitsuba module
+def _bitmap_texture(mi, data: np.ndarray) -> dict:  # the mitsuba module
     """A Mitsuba bitmap texture of raw float values, bilinear and clamped at its edges."""
     return {
         "type": "bitmap",
@@ -625,7 +625,7 @@ def reference_target_scene(
 ) -> Scene:
     """The same rig with the sample replaced by a reference target: Lambertian of albedo
     ``reflectance`` (f_ref = ρ/π, e.g. Spectralon near normal incidence), or any scene
-    ``material`` (a simulator.scene material model or its dict) — DESIGN §7 warns that real
+    ``material`` (a simulator.scene material model or its dict) — docs/design.md §7 warns that real
     Spectralon departs from Lambert at large angles, so a non-Lambertian target (evaluated as its
     "calibrated table" by ``Renderer.truth_bsdf``) exercises the calibrated-f_ref(θ) path."""
     from simulator.scene import DiffuseMaterial

@@ -436,11 +436,11 @@ class Scene(Strict):
 
 def _resolve_material_paths(material, base: Path) -> None:
     """Make ``measured`` filenames absolute, in place: ``data:REL`` through the data resolver
-    (fitting.data_paths, honours $GONIO_DATA), any other relative path against the scene file."""
+    (brdfdata.data_paths, honours $GONIO_DATA), any other relative path against the scene file."""
     if not isinstance(material, dict):
         return
     if material.get("type") == "measured" and isinstance(material.get("filename"), str):
-        from fitting.data_paths import SCHEME, resolve_data_uri
+        from brdfdata.data_paths import SCHEME, resolve_data_uri
 
         if material["filename"].startswith(SCHEME):
             material["filename"] = resolve_data_uri(material["filename"])
@@ -466,7 +466,7 @@ def load_scene(path: str | Path) -> Scene:
         raise ConfigError(format_validation_error(path, err, Scene)) from None
 
 
-def world_scene(scene: Scene, rig) -> Scene:  # noqa: ANN001 - acquisition.config.RigConfig
+def world_scene(scene: Scene, rig) -> Scene:  # acquisition.config.RigConfig
     """The emulated world's truth for `rig`: what the scene states, and — for every camera,
     sensor, sample and lamp quantity the scene leaves unstated — the rig file's description.
 
@@ -529,7 +529,7 @@ def world_scene(scene: Scene, rig) -> Scene:  # noqa: ANN001 - acquisition.confi
     return s.model_copy(update=update)
 
 
-def _rig_fx(rig) -> float:  # noqa: ANN001
+def _rig_fx(rig) -> float:
     if rig.calibration.intrinsics is not None:
         from acquisition.config import load_intrinsics
 

@@ -17,7 +17,9 @@ import json
 
 import numpy as np
 
+from simulator.bsdf_eval import eval_fr
 from simulator.scene import TexturedMaterial
+from simulator.variant import use_variant
 
 __all__ = [
     "TRUTH_NAMES",
@@ -90,10 +92,7 @@ def textured_brdf(material: TexturedMaterial, wi, wo, texel, variant: str | None
     ``wi`` to the light and ``wo`` to the camera (K, 3) each, sample frame."""
     import mitsuba as mi
 
-    from simulator.bsdf_eval import eval_fr
-    from simulator.truth import _set_variant
-
-    variant = _set_variant(variant)
+    variant = use_variant(variant)
     bsdf = mi.load_dict(textured_dict(material))
     return eval_fr(bsdf, wi, wo, variant, uv=texel_uv(material, texel))
 
@@ -116,8 +115,8 @@ def texel_direct_samples(
     Directions are rounded to float32 first (Mitsuba's precision) and the table's angles are
     those of the rounded vectors. Returns ``(table, f_true (K, 3))``.
     """
-    from fitting.directions import normalize, vector_to_spherical
-    from fitting.samples import SampleTable
+    from brdfdata.directions import normalize, vector_to_spherical
+    from brdfdata.samples import SampleTable
 
     rng = np.random.default_rng(rng)
     wi = normalize(np.asarray(wi, dtype=np.float32).astype(np.float64))

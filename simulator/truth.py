@@ -11,7 +11,7 @@ RGB variant. :func:`mitsuba_conductor_ior` reads those values back from the load
 (``mi.traverse``: ``eta.value``, ``k.value``), so a ``fresnel=conductor`` model can be compared
 with the same (η, k) Mitsuba uses. (Mitsuba 3.9.1, scalar_rgb: Au η = (0.1430, 0.3753, 1.4421),
 k = (3.983, 2.3856, 1.6034); Cu η = (0.2010, 0.9238, 1.1022), k = (3.9133, 2.4531, 2.1421) —
-the values of DESIGN §6 to ≤ 0.3 %.)
+the values of docs/design.md §6 to ≤ 0.3 %.)
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from simulator.scene import (
     RoughConductorMaterial,
     Scene,
 )
-from simulator.variant import ensure_variant
+from simulator.variant import use_variant
 
 __all__ = [
     "reference_parameters",
@@ -76,7 +76,7 @@ def mitsuba_conductor_ior(
         return None
     import mitsuba as mi
 
-    _set_variant(variant)
+    use_variant(variant)
     params = mi.traverse(mi.load_dict(material_dict(material)))
 
     def rgb(key: str) -> tuple[float, float, float]:
@@ -128,28 +128,18 @@ def material_reference_parameters(material, variant: str | None = None) -> dict[
     return out
 
 
-def _set_variant(variant: str | None) -> str:
-    import mitsuba as mi
-
-    if variant is None:
-        return ensure_variant()
-    if mi.variant() != variant:
-        mi.set_variant(variant)
-    return variant
-
-
 def mitsuba_brdf(material, wi, wo, variant: str | None = None) -> np.ndarray:
     """f_r(ω_i, ω_o) (N, 3) in sr⁻¹ from Mitsuba's own BSDF of a scene material.
 
     ``wi`` (N, 3) points to the light, ``wo`` (N, 3) to the camera, sample frame. Mitsuba's
     ``bsdf.eval(ctx, si, w)`` returns f_r(si.wi, w)·cos θ_w; the direct integrator calls it
     with si.wi towards the camera and w towards the light, so we do the same and divide by
-    cos θ_i (DESIGN §3). Mitsuba runs in float32: pass directions that are exactly float32
+    cos θ_i (docs/design.md §3). Mitsuba runs in float32: pass directions that are exactly float32
     values if the comparison must not see their rounding. Below the horizon f_r = 0.
     """
     import mitsuba as mi
 
-    variant = _set_variant(variant)
+    variant = use_variant(variant)
     bsdf = mi.load_dict(material_dict(material))
     # A Python-model BSDF needs concrete arrays (wavefront mode), see simulator.materials.
     wavefront = needs_wavefront(material) or model_bsdfs_alive()
@@ -174,8 +164,8 @@ def direct_samples(
     are those of the rounded vectors, so data and model see the same geometry. Returns
     ``(table, f_true (N, 3))``.
     """
-    from fitting.directions import normalize, vector_to_spherical
-    from fitting.samples import SampleTable
+    from brdfdata.directions import normalize, vector_to_spherical
+    from brdfdata.samples import SampleTable
 
     rng = np.random.default_rng(rng)
     wi = np.asarray(wi, dtype=np.float32).astype(np.float64)

@@ -1,9 +1,9 @@
 """Choose the Mitsuba 3 variant once per process: ``llvm_ad_rgb`` if it works, else ``scalar_rgb``.
 
-Why a subprocess probe: drjit's LLVM backend *aborts the whole process* (no Python exception) in
-the path integrator when it binds LLVM 15/16 (DESIGN §7). So we render a tiny path-traced scene in a
-child interpreter first; only if it exits cleanly do we select the llvm variant here. libLLVM ≥ 17
-is needed; if the default lookup fails we retry with ``DRJIT_LIBLLVM_PATH`` pointed at a known
+Why a subprocess probe: drjit's LLVM backend *aborts the whole process* (no Python exception) in the
+path integrator when it binds LLVM 15/16 (docs/design.md §7). So we render a tiny path-traced scene
+in a child interpreter first; only if it exits cleanly do we select the llvm variant here. libLLVM ≥
+17 is needed; if the default lookup fails we retry with ``DRJIT_LIBLLVM_PATH`` pointed at a known
 libLLVM 19 and, on success, export that variable in this process before the variant is set.
 
 Override with the environment variable ``GONIO_MITSUBA_VARIANT`` (e.g. ``scalar_rgb``).
@@ -18,7 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-__all__ = ["choose_variant", "ensure_variant", "probe_variant", "LLVM_CANDIDATES"]
+__all__ = ["choose_variant", "ensure_variant", "use_variant", "probe_variant", "LLVM_CANDIDATES"]
 
 log = logging.getLogger(__name__)
 
@@ -113,3 +113,15 @@ def ensure_variant(prefer: str = "llvm_ad_rgb") -> str:
     if mi.variant() != name:
         mi.set_variant(name)
     return name
+
+
+def use_variant(variant: str | None) -> str:
+    """Make ``variant`` Mitsuba's active one (None: the chosen one, :func:`ensure_variant`);
+    returns its name."""
+    import mitsuba as mi
+
+    if variant is None:
+        return ensure_variant()
+    if mi.variant() != variant:
+        mi.set_variant(variant)
+    return variant

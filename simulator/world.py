@@ -55,7 +55,7 @@ def url_name(url: str, scheme: str) -> str | None:
     return url[len(prefix) :].split("?", 1)[0].strip("/")
 
 
-def axis_ticks(ax, angle_rad: float) -> int:  # noqa: ANN001 - AxisConfig
+def axis_ticks(ax, angle_rad: float) -> int:  # AxisConfig
     """Servo ticks of an axis at a physical angle (the rig's truth: its stated zero offset)."""
     zero = math.radians(ax.zero_offset_deg)
     return int(
@@ -309,7 +309,7 @@ class SimWorld:
             reference_size_m=None if ref is None else ref.size_m,
         )
 
-    def _make_camera(self, rig: RigConfig, clock) -> FaultyCamera:  # noqa: ANN001 - factory
+    def _make_camera(self, rig: RigConfig, clock) -> FaultyCamera:  # factory
         if self.camera is None:
             self.camera = SimCamera(
                 self.scene,

@@ -68,7 +68,7 @@ class RecordedWidget:
                 return child
         raise gp.GPhoto2Error(gp.GP_ERROR_BAD_PARAMETERS)
 
-    def walk(self):  # noqa: ANN201
+    def walk(self):
         for child in self.children:
             yield child
             yield from child.walk()

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fitting.directions import spherical_to_vector
+from brdfdata.directions import spherical_to_vector
+from brdfdata.samples import write_samples
 from fitting.fit import FitOptions
-from fitting.samples import write_samples
 from fitting.texels import texel_fit_options
 from simulator.scene import load_scene
 from simulator.texture import texel_direct_samples
@@ -76,7 +76,7 @@ class ProcessCluster:
     def __init__(self, folder: Path, workers: int = 2) -> None:
         self.file = folder / "scheduler.json"
         env = {**os.environ, "PYTHONPATH": str(REPO)}
-        log = open(folder / "dask.log", "ab")  # noqa: SIM115 - closed in stop()
+        log = open(folder / "dask.log", "ab")  # closed in stop()
         self._log = log
         self.scheduler = subprocess.Popen(
             [

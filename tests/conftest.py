@@ -32,11 +32,11 @@ def configs() -> Path:
 
 
 def data_file(relpath: str) -> Path:
-    """A real data file through the one resolver (fitting.data_paths: $GONIO_DATA, the
+    """A real data file through the one resolver (brdfdata.data_paths: $GONIO_DATA, the
     repository's data/, an installed wheel, the download cache). A shipped file that is missing
     is a test failure, never a skip; a file not shipped for licence reasons (data/README.md)
     skips with the command that fetches it."""
-    from fitting.data_paths import FETCHED, DataNotFound, find_data
+    from brdfdata.data_paths import FETCHED, DataNotFound, find_data
 
     try:
         return find_data(relpath)
@@ -49,11 +49,11 @@ def data_file(relpath: str) -> Path:
 def data_dir(group: str) -> Path:
     """The folder holding a data group (``rgl_brdf``, ``calibration_chessboard``, …), found
     through one of its files (see data_file)."""
-    from fitting.data_paths import FETCHED, manifest
+    from brdfdata.data_paths import FETCHED, manifest
 
     files = sorted(p for p in {**manifest(), **FETCHED} if p.split("/", 1)[0] == group)
     if not files:
-        pytest.fail(f"no data group {group!r} in data/SHA256SUMS or fitting.data_paths.FETCHED")
+        pytest.fail(f"no data group {group!r} in data/SHA256SUMS or brdfdata.data_paths.FETCHED")
     return data_file(files[0]).parent
 
 

@@ -1,4 +1,4 @@
-"""The ABC lobe (fitting.abc) against its published form, written here from the paper's
+"""The ABC lobe (fitting.models.abc_lobe) against its published form, written here from the paper's
 quantities (Löw et al. 2012, §4: S(f) = A / (1 + B f²)^C, f the distance in the projected disk
 between the mirror direction ω_r of ω_i and ω_o) rather than from the module's expressions."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fitting import registry
-from fitting.directions import spherical_to_vector
+from brdfdata.directions import spherical_to_vector
+from fitting import models
 
 RNG = np.random.default_rng(11)
 N = 5000
@@ -31,7 +31,7 @@ def test_lobe_is_the_published_abc_form(exponent: str) -> None:
     # with q = 0 exactly the lobe must be Löw's ABC form with B = (2^(1/C) − 1)/w^p to
     # rounding (1e-12 relative: a few operations in double precision).
     p = float(exponent)
-    model = registry.get("abc", exponent=exponent)
+    model = models.get("abc", exponent=exponent)
     for w, c in ((0.05, 0.7), (0.3, 2.5), (1.2, 15.0)):
         params = {"kd": 0.0, "ks": 2.0, "w": w, "C": c, "q": 0.0, "k": 0.0}
         b = (2.0 ** (1.0 / c) - 1.0) / w**p
@@ -42,7 +42,7 @@ def test_lobe_is_the_published_abc_form(exponent: str) -> None:
 
 
 def test_half_width_fresnel_and_obliquity() -> None:
-    model = registry.get("abc")
+    model = models.get("abc")
     # at d = w the lobe is ks/2 whatever C (the parametrisation's definition)
     ti = np.radians(40.0)
     wi = spherical_to_vector(ti, 0.0)[None]

@@ -13,9 +13,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.integrate import dblquad
 
-from fitting import microfacet as mf
-from fitting import models, properties
-from fitting.directions import spherical_to_vector, uniform_hemisphere
+from brdfdata.directions import spherical_to_vector, uniform_hemisphere
+from fitting import models
+from fitting.models import microfacet as mf
+from fitting.models import properties
 
 TS_ANISO = "torrance-sparrow-anisotropic"
 OPTIONS = [
@@ -206,7 +207,7 @@ def test_ward_albedo_limits():
 @pytest.mark.parametrize("dist", ["beckmann", "ggx"])
 def test_white_furnace(dist):
     """F ≡ 1, kd = 0: the single-scattering albedo with Smith is ≤ 1 and equals the isotropic
-    one (DESIGN §6 table for Beckmann m = 0.3, 0.5) when α_x = α_y, whatever φ₀."""
+    one (docs/design.md §6 table for Beckmann m = 0.3, 0.5) when α_x = α_y, whatever φ₀."""
     aniso = models.get(TS_ANISO, distribution=dist, shadowing="smith", fresnel="none")
     th = np.arccos([1.0, 0.5, 0.2])
     if dist == "beckmann":

@@ -24,11 +24,11 @@ import numpy as np
 import pytest
 
 from acquisition.plans import anisotropic_plan_config
+from brdfdata.directions import spherical_to_vector
+from brdfdata.samples import Flags
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting import models
-from fitting.directions import spherical_to_vector
 from fitting.fit import FitOptions, fit_samples
-from fitting.samples import Flags
 from gonio.pipeline import AcquireSpec, acquire
 
 REPO = Path(__file__).resolve().parent.parent

@@ -41,7 +41,7 @@ def _aravis_installed() -> None:
     require_aravis()
 
 
-def _camera(device: str, pixel_format: str = "Mono16", size=(64, 48), **kw):  # noqa: ANN001, ANN003, ANN202
+def _camera(device: str, pixel_format: str = "Mono16", size=(64, 48), **kw):
     from acquisition.cameras_aravis import AravisCamera, AravisOptions
     from acquisition.device_config import AravisConfig
 
@@ -49,13 +49,13 @@ def _camera(device: str, pixel_format: str = "Mono16", size=(64, 48), **kw):  # 
     return AravisCamera(AravisOptions(settings, size, timeout_s=2.0))
 
 
-def _decode(frame, tmp_path: Path, name: str):  # noqa: ANN001, ANN202
+def _decode(frame, tmp_path: Path, name: str):
     path = tmp_path / f"{name}{frame.suffix}"
     path.write_bytes(frame.data)
     return decode_frame(path)
 
 
-def _assert_pattern(d, pixel_format: str, gain: int) -> None:  # noqa: ANN001
+def _assert_pattern(d, pixel_format: str, gain: int) -> None:
     h, w = d.dn.shape
     exp = expected_mono(pixel_format, w, h, d.metadata["frame_id"], gain, d.exposure_s * 1e6)
     bad = np.argwhere(d.dn.astype(np.int64) != exp)

@@ -92,7 +92,7 @@ def _in_process_debug(args: list[str], cwd: Path, monkeypatch: pytest.MonkeyPatc
         cli.main()
     except SystemExit as exc:  # main turned the error into an exit code: --debug ignored
         pytest.fail(f"--debug: exited with {exc.code} instead of re-raising")
-    except Exception as exc:  # noqa: BLE001 — any error type; that it propagates is the point
+    except Exception as exc:  # any error type; that it propagates is the point
         return "".join(traceback.format_exception(exc))
     pytest.fail("--debug: the command succeeded on bad input")
 

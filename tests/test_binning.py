@@ -17,14 +17,14 @@ import sys
 import numpy as np
 import pytest
 
+from brdfdata.directions import isotropic_gonio_directions, normalize
+from brdfdata.samples import Flags, SampleTable, write_samples
 from fitting import models
 from fitting.binning import BinOptions, bin_table, binning_bias, read_binned
-from fitting.directions import isotropic_gonio_directions, normalize
 from fitting.fit import FitOptions, fit_samples
 from fitting.likelihood import Likelihood
 from fitting.lsq import fit_least_squares
 from fitting.priors import ParameterSpace
-from fitting.samples import Flags, SampleTable, write_samples
 from simulator.scene import BlendMaterial, DiffuseMaterial, RoughConductorMaterial
 from simulator.truth import direct_samples, material_reference_parameters, mitsuba_brdf
 

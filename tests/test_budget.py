@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from brdfdata.directions import isotropic_gonio_directions
 from fitting import models
 from fitting.budget import add_systematic, amplitude_parameters, read_budget
-from fitting.directions import isotropic_gonio_directions
 from fitting.fit import FitOptions, fit_samples
 from simulator.scene import BlendMaterial, DiffuseMaterial, RoughConductorMaterial
 from simulator.truth import direct_samples, material_reference_parameters
@@ -100,7 +100,7 @@ def test_amplitudes_are_found_and_checked() -> None:
         name = "offset"
         parameter_names = ("kd",)
 
-        def evaluate(self, params, wi, wo):  # noqa: ANN001
+        def evaluate(self, params, wi, wo):
             return np.asarray(params["kd"]) + np.ones(len(wi))
 
     assert amplitude_parameters(Offset(), {"kd": 0.5}) == ()

@@ -17,10 +17,10 @@ import pytest
 
 from acquisition.config import PlanConfig, load_rig
 from acquisition.operator import AutoOperator
+from brdfdata.directions import spherical_to_vector
+from brdfdata.samples import Flags
 from calibration.darks import calibration_frames
 from calibration.reduce import ReduceOptions, reduce_run
-from fitting.directions import spherical_to_vector
-from fitting.samples import Flags
 from gonio.pipeline import AcquireSpec, acquire
 from simulator.render import Renderer
 from simulator.scene import load_scene, world_scene

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fitting.directions import grid_direction_pairs
+from brdfdata.directions import grid_direction_pairs
+from brdfdata.samples import Flags
 from fitting.fit import FitOptions, fit_samples
-from fitting.samples import Flags
 from simulator.scene import load_scene
 from simulator.truth import direct_samples, reference_parameters
 
@@ -84,7 +84,7 @@ def test_a_chain_of_the_old_default_is_continued_or_replaced_with_a_note(tmp_pat
     """Derived files are never silently replaced by ones made with other options: a stored
     chain made when flagged samples were dropped (the old default) is continued where no
     sample is flagged (the posterior is the same), and replaced with a note where some are."""
-    from fitting.samples import SampleTable
+    from brdfdata.samples import SampleTable
 
     rng = np.random.default_rng(0)
     n = 120

@@ -16,11 +16,11 @@ import pyarrow.parquet as pq
 import pytest
 from scipy import stats
 
+from brdfdata.samples import Flags, SampleTable
 from fitting import models
 from fitting.compare import ModelScore, gpd_fit, psis_loo, psis_smooth, rank, waic
 from fitting.likelihood import Likelihood
 from fitting.priors import ParameterSpace
-from fitting.samples import Flags, SampleTable
 
 GONIO = [sys.executable, "-m", "gonio.cli"]
 
@@ -221,9 +221,9 @@ def test_fit_model_all_ranks_the_generating_model_first(tmp_path: Path) -> None:
 def test_per_channel_roughness_wins_when_channels_differ(tmp_path: Path) -> None:
     """Mitsuba data whose R, G, B lobes have m = 0.1, 0.15, 0.2: the per-channel-m fit must
     beat the shared-m fit by many SE of the pointwise ELPD difference."""
+    from brdfdata.samples import read_samples
     from fitting.compare import candidates, run_comparison
     from fitting.fit import FitOptions
-    from fitting.samples import read_samples
 
     table = read_samples(_mitsuba_samples(tmp_path / "s.parquet", alphas=(0.1, 0.15, 0.2)))
     opts = {"shadowing": "smith-rational", "fresnel": "none"}

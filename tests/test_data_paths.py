@@ -1,5 +1,5 @@
 """The repository stands on its own (issue 16, item 5): real data shipped in data/ with their
-SHA-256, one resolver (fitting.data_paths) honouring $GONIO_DATA, the `data:` scheme of the
+SHA-256, one resolver (brdfdata.data_paths) honouring $GONIO_DATA, the `data:` scheme of the
 scene files, and a checked fetch for the data not shipped."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import subprocess
 import pytest
 from conftest import REPO
 
-from fitting import data_paths
-from fitting.data_paths import DataNotFound, fetch, find_data, manifest, resolve_data_uri, verify
+from brdfdata import data_paths
+from brdfdata.data_paths import DataNotFound, fetch, find_data, manifest, resolve_data_uri, verify
 
 
 def test_every_shipped_file_is_in_the_repository_with_its_hash() -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from acquisition.store import RunStore
-from fitting.samples import read_samples
+from brdfdata.samples import read_samples
 from simulator.scene import load_scene
 from simulator.truth import reference_parameters
 

@@ -24,7 +24,7 @@ def test_ggx_scene_fits_ggx() -> None:
     opts, line = demo_fit_choice(load_scene(GGX), quick=True)
     assert opts.model == "torrance-sparrow"
     # Mitsuba's GGX roughconductor: the exact separable Smith G1 and, with conductor "none",
-    # F ≡ 1 (simulator.materials, DESIGN §7).
+    # F ≡ 1 (simulator.materials, docs/design.md §7).
     assert dict(opts.model_options) == {
         "distribution": "ggx",
         "shadowing": "smith",
@@ -66,7 +66,7 @@ def test_cli_demo_prints_the_choice(monkeypatch: pytest.MonkeyPatch, tmp_path: P
 
     seen = {}
 
-    def stop(run_dir, spec):  # noqa: ANN001, ANN202
+    def stop(run_dir, spec):
         seen["fit"] = spec.fit
         raise _Stop
 

@@ -25,10 +25,10 @@ class _CapturePort:
         self.is_using = False
         self.sent = b""
 
-    def clearPort(self) -> None:  # noqa: N802 - SDK name
+    def clearPort(self) -> None:  # SDK name
         pass
 
-    def writePort(self, packet) -> int:  # noqa: N802 - SDK name
+    def writePort(self, packet) -> int:  # SDK name
         self.sent = bytes(packet)
         return len(packet)
 

@@ -309,7 +309,7 @@ def test_area_light_spp_from_noise_target_and_disk_irradiance():
     rel = img[m] / truth[m] - 1
     # The planned spp meets the noise target (rms relative error per pixel ≤ ε) ...
     assert np.sqrt(np.mean(rel**2)) <= eps
-    # ... and the disk differs from the point lamp as 1/(1 + (a/d)²) on axis (DESIGN §7):
+    # ... and the disk differs from the point lamp as 1/(1 + (a/d)²) on axis (docs/design.md §7):
     point = RHO / np.pi * 1.0 / d**2
     assert abs(truth[16, 16] / point - 1 / (1 + (a / d) ** 2)) < 1e-9
     assert abs(img[16, 16] / point - 1 / (1 + (a / d) ** 2)) < 3 * eps

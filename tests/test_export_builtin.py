@@ -19,11 +19,11 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from fitting.directions import isotropic_gonio_directions
+from brdfdata.directions import isotropic_gonio_directions
+from brdfdata.formats.rgl import load_rgl
+from brdfdata.samples import Flags, write_samples
 from fitting.export import export_material, fit_evaluator
 from fitting.fit import FitOptions, fit_samples
-from fitting.formats.rgl import load_rgl
-from fitting.samples import Flags, write_samples
 from simulator.scene import (
     BlendMaterial,
     DiffuseMaterial,
@@ -33,7 +33,7 @@ from simulator.scene import (
 from simulator.truth import direct_samples, mitsuba_brdf
 
 SMITH = {"shadowing": "smith-rational"}
-CU_ETA, CU_K = (0.2004, 0.9240, 1.1022), (3.9129, 2.4528, 2.1422)  # DESIGN §6
+CU_ETA, CU_K = (0.2004, 0.9240, 1.1022), (3.9129, 2.4528, 2.1422)  # docs/design.md §6
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -58,7 +58,8 @@ def _dirs(seed: int, n: int = 3000):
 
 
 def _mitsuba_f(bsdf, wi, wo) -> np.ndarray:
-    """f_r (N, 3): Mitsuba eval with si.wi towards the camera, divided by cos θ_i (DESIGN §3)."""
+    """f_r (N, 3): Mitsuba eval with si.wi towards the camera, divided by cos θ_i (docs/design.md
+    §3)."""
     import drjit as dr
 
     n = wi.shape[0]

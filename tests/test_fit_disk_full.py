@@ -20,8 +20,8 @@ from pathlib import Path
 import emcee
 import numpy as np
 
+from brdfdata.samples import SampleTable, write_samples
 from fitting.chain_file import load_chain, save_chain
-from fitting.samples import SampleTable, write_samples
 
 
 def _lambert_samples(path: Path) -> Path:

@@ -1,4 +1,4 @@
-"""Fit orchestration and the fit-<model>.json contract (DESIGN §4, issue 7)."""
+"""Fit orchestration and the fit-<model>.json contract (docs/design.md §4, issue 7)."""
 
 from __future__ import annotations
 
@@ -9,13 +9,13 @@ import h5py
 import numpy as np
 import pytest
 
+from brdfdata.samples import Flags, SampleTable
 from fitting import models
 from fitting.fit import FitOptions, fit_samples
 from fitting.priors import ParameterSpace
 from fitting.result import FitResultError, read_fit
-from fitting.samples import Flags, SampleTable
 
-# The contract, copied from DESIGN §4 (not imported from the code under test).
+# The contract, copied from docs/design.md §4 (not imported from the code under test).
 TOP = {
     "schema_version",
     "model",

@@ -10,13 +10,14 @@ import itertools
 import numpy as np
 import pytest
 
-from fitting import kernels, models, registry
-from fitting.directions import spherical_to_vector, uniform_hemisphere
+from brdfdata.directions import spherical_to_vector, uniform_hemisphere
+from brdfdata.samples import SampleTable
+from fitting import models
 from fitting.likelihood import F32_LNL_LIMIT, Likelihood
 from fitting.lsq import fit_least_squares
 from fitting.mcmc import McmcOptions, run_mcmc
+from fitting.models import kernel_math
 from fitting.priors import ParameterSpace
-from fitting.samples import SampleTable
 
 U32 = 2.0**-24  # float32's unit roundoff: a correctly rounded operation errs by ≤ U32 relative
 
@@ -30,14 +31,14 @@ def test_float32_exp_neg_accuracy():
     So 32 U32 bounds it, against numpy's float64 exp of the same float32 x."""
     x = np.concatenate([np.linspace(0.0, 85.99, 200_001), [0.0, 1e-30, 0.5 * np.log(2)]])
     x32 = x.astype(np.float32)
-    got = kernels.exp_neg(x32)
+    got = kernel_math.exp_neg(x32)
     assert got.dtype == np.float32
     ref = np.exp(-x32.astype(np.float64))
     rel = np.abs(got.astype(np.float64) - ref) / ref
     assert rel.max() <= 32 * U32, rel.max() / U32
     assert np.all(got > 0)  # p·2^−k with k ≤ 124 stays a normal float32 (no denormal assists)
     # from 86 on it is 0, as the kernels take it (and never garbage beyond the polynomial's range)
-    far = kernels.exp_neg(np.array([86.0, 100.0, 1e6, np.inf], np.float32))
+    far = kernel_math.exp_neg(np.array([86.0, 100.0, 1e6, np.inf], np.float32))
     assert np.all(far == 0)
 
 
@@ -65,14 +66,14 @@ WELL_CONDITIONED = [
 
 @pytest.mark.parametrize("options", WELL_CONDITIONED, ids=lambda o: "-".join(o.values()))
 def test_float32_within_rounding_of_the_numpy_reference(options):
-    """|f32 − f| ≤ (64 + 3x)·U32·f against the numpy backend (fitting.microfacet/fresnel, float64)
-    over the priors' box (m ≥ 0.02), where x = tan²θ_h/m² is Beckmann's exponent (0 for GGX).
-    Why that bound: ≤ 40 rounded float32 operations on positive quantities, each ≤ U32
+    """|f32 − f| ≤ (64 + 3x)·U32·f against the numpy backend (fitting.models.microfacet/fresnel,
+    float64) over the priors' box (m ≥ 0.02), where x = tan²θ_h/m² is Beckmann's exponent (0 for
+    GGX). Why that bound: ≤ 40 rounded float32 operations on positive quantities, each ≤ U32
     relative (≤ 40 U32, Higham's γ_n); the nine geometry values and the parameter table rounded
     once each to float32, entering f with condition numbers ≤ 2 (G, F, D_GGX; ≤ 18 U32 in all);
-    Beckmann's exp(−x) turns x's relative error (t², 1/m² and their product: 3 U32) into
-    3x U32 of e^−x. Rows with x ≥ 80 are left out: there e^−x < 2e-35 nears float32's
-    smallest normal, and the kernels cut it to 0 from 86 (documented)."""
+    Beckmann's exp(−x) turns x's relative error (t², 1/m² and their product: 3 U32) into 3x U32
+    of e^−x. Rows with x ≥ 80 are left out: there e^−x < 2e-35 nears float32's smallest normal,
+    and the kernels cut it to 0 from 86 (documented)."""
     rng = np.random.default_rng(7)
     n, w = 3000, 40
     wi = uniform_hemisphere(n, rng)
@@ -115,9 +116,9 @@ def test_float32_every_configuration_is_sound(name):
     wi = uniform_hemisphere(n, rng)
     wo = uniform_hemisphere(n, rng)
     wi[:25, 2] *= -1
-    entry = registry.entry(name)
+    entry = models.entry(name)
     for combo in itertools.product(*[[(o.name, v) for v in o.allowed] for o in entry.options]):
-        model = registry.get(name, **dict(combo))
+        model = models.get(name, **dict(combo))
         params = {p.name: _draw(p, (w, 1), rng) for p in model.parameters}
         f32 = model.evaluate(params, wi, wo, precision="float32")
         f64 = model.evaluate(params, wi, wo)

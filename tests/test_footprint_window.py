@@ -1,6 +1,6 @@
 """Calibration processes each pose only around the sample's image (calibration.planes:
 `footprint_window`) and streams the samples to the file pose by pose (calibration.reduce:
-`reduce_to_file`, fitting.samples: `SampleStream`); neither may change a sample.
+`reduce_to_file`, brdfdata.samples: `SampleStream`); neither may change a sample.
 
 - A pose reduced in its window gives exactly the whole frame's planes, geometry and
   segmentation there, and nothing on the sample outside it. Exact: every per-pixel step
@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 from acquisition.store import RunStore
+from brdfdata.samples import SampleStream, SampleTable, read_samples, write_samples
 from calibration.planes import pose_planes
 from calibration.reduce import ReduceOptions, _captures_by_pose, _decode_pose, _run_calibration
-from fitting.samples import SampleStream, SampleTable, read_samples, write_samples
 from tests._small_runs import REPO, small_run
 
 
@@ -90,7 +90,7 @@ def _table(rng: np.random.Generator, n: int, capture: int) -> dict[str, np.ndarr
 def test_a_streamed_file_reads_back_as_the_table_written_at_once(tmp_path, monkeypatch) -> None:
     import pyarrow.parquet as pq
 
-    from fitting.samples import write_samples_streamed
+    from brdfdata.samples import write_samples_streamed
 
     rng = np.random.default_rng(3)
     pieces = [_table(rng, n, i) for i, n in enumerate((700, 0, 1300, 450))]
@@ -125,7 +125,7 @@ def test_a_streamed_file_reads_back_as_the_table_written_at_once(tmp_path, monke
 
 
 def test_a_failed_stream_leaves_no_file(tmp_path) -> None:
-    from fitting.samples import write_samples_streamed
+    from brdfdata.samples import write_samples_streamed
 
     rng = np.random.default_rng(4)
 

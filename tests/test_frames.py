@@ -1,5 +1,5 @@
 """Frame encoders (simulator.frames) and decoders (calibration.decode): exact round trips through
-the independent readers (rawpy/LibRaw, OpenEXR), the DESIGN §7 linearisation, and errors."""
+the independent readers (rawpy/LibRaw, OpenEXR), the docs/design.md §7 linearisation, and errors."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Fresnel reflectance against the published/independent numbers of DESIGN §6."""
+"""Fresnel reflectance against the published/independent numbers of docs/design.md §6."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import pytest
 from scipy.integrate import quad
 from scipy.optimize import minimize_scalar
 
-from fitting import fresnel
+from fitting.models import fresnel
 
 COS = lambda deg: np.cos(np.radians(deg))  # noqa: E731
 
 
-# DESIGN §6 gives these to 4–5 decimals: the tolerance is half a unit in the last digit.
+# docs/design.md §6 gives these to 4–5 decimals: the tolerance is half a unit in the last digit.
 @pytest.mark.parametrize(
     ("deg", "expected", "tol"),
     [
@@ -46,7 +46,7 @@ def test_brewster_angle():
 
 
 def test_cosine_weighted_hemispherical_average():
-    # 2 ∫ F(θ) cos θ sin θ dθ = 0.09178 (DESIGN §6), to its rounding.
+    # 2 ∫ F(θ) cos θ sin θ dθ = 0.09178 (docs/design.md §6), to its rounding.
     val = (
         2
         * quad(

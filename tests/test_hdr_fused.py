@@ -92,9 +92,9 @@ def test_threads_do_not_change_the_merge_or_the_geometry() -> None:
     """The parallel twins (bands of rows on numba's threads) give the serial ones' results bit
     for bit:
     every value's arithmetic is its own, so only the speed may depend on the machine's load
-    (the "auto" policy picks a twin by timing, fitting.kernels.set_threading)."""
+    (the "auto" policy picks a twin by timing, plumbing.numba_policy.set_threading)."""
     from calibration.geometry import Intrinsics, pixel_geometry
-    from fitting.kernels import PARALLEL_MIN_WORK, set_threading
+    from plumbing.numba_policy import PARALLEL_MIN_WORK, set_threading
 
     rng = np.random.default_rng(11)
     # 84 480 values ≥ PARALLEL_MIN_WORK: threads are allowed; 330 rows are 5 whole bands of

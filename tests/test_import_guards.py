@@ -19,11 +19,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from brdfdata.formats.common import FormatError, SigmaRule
+from brdfdata.formats.csv_table import CsvOptions, read_csv_table, write_csv_table
+from brdfdata.samples import Flags, SampleTable, read_samples
+from brdfdata.samples.guards import GuardError, check_samples
 from fitting.fit import FitOptions, fit_samples
-from fitting.formats.common import FormatError, SigmaRule
-from fitting.formats.csv_table import CsvOptions, read_csv_table, write_csv_table
-from fitting.formats.guards import GuardError, check_samples
-from fitting.samples import Flags, SampleTable, read_samples
 
 KD = 0.73  # the table's true albedo
 
@@ -266,7 +266,7 @@ def test_duplicate_groups_are_the_partition_of_equal_keys() -> None:
     """The grouping (one lexicographic sort) against an independent one: numpy's unique rows of
     the stacked keys, on a table with planted repeats (angles, channel and capture each shared
     with another row while a single other key differs) and flagged rows left out."""
-    from fitting.formats.guards import _duplicate_groups
+    from brdfdata.samples.guards import _duplicate_groups
 
     rng = np.random.default_rng(3)
     n = 600

@@ -1,6 +1,6 @@
 """`gonio import merl` / `gonio export merl`: the MERL ``.binary`` layout and lookup of
 Matusik et al. 2003 (BRDFRead.cpp), checked against an independent lookup written here from the
-format's description (rotation matrices and arccos, not fitting.rusinkiewicz's atan2 form), and
+format's description (rotation matrices and arccos, not brdfdata.rusinkiewicz's atan2 form), and
 a write → read round trip of an analytic model.
 """
 
@@ -12,13 +12,13 @@ import sys
 import numpy as np
 import pytest
 
-from fitting.directions import spherical_to_vector
-from fitting.export import fit_evaluator
-from fitting.formats.common import FormatError
-from fitting.formats.convert import ImportOptions, export_file, import_samples
-from fitting.formats.merl import DIMS, SCALES, MerlTable, read_merl, write_merl
+from brdfdata.directions import spherical_to_vector
+from brdfdata.formats.common import FormatError
+from brdfdata.formats.convert import ImportOptions, import_samples
+from brdfdata.formats.merl import DIMS, SCALES, MerlTable, read_merl, write_merl
+from brdfdata.rusinkiewicz import from_half_diff
+from fitting.export import export_fit, fit_evaluator
 from fitting.result import FitResult
-from fitting.rusinkiewicz import from_half_diff
 
 N_BINS = DIMS[0] * DIMS[1] * DIMS[2]
 
@@ -98,13 +98,13 @@ def _fit_json(tmp_path) -> FitResult:
 
 def test_export_then_import_reproduces_the_model(tmp_path) -> None:
     fit = _fit_json(tmp_path)
-    out, what = export_file("merl", tmp_path / "fit-torrance-sparrow.json", tmp_path / "m.binary")
+    out, what = export_fit("merl", tmp_path / "fit-torrance-sparrow.json", tmp_path / "m.binary")
     assert out.stat().st_size == 12 + 3 * N_BINS * 8 and "bin centres" in what
     table = import_samples("merl", out, ImportOptions())
     n = len(table) // 3
     assert set(table.channels) == {"R", "G", "B"} and n > 1_000_000
     # Rows follow the bins in file order; a bin's direction is its centre (module docstring of
-    # fitting.formats.merl), built here from the index-space centres.
+    # brdfdata.formats.merl), built here from the index-space centres.
     i, j, k = (a.ravel() for a in np.meshgrid(*(np.arange(d) for d in DIMS), indexing="ij"))
     wi_c, wo_c = from_half_diff(
         ((i + 0.5) / 90) ** 2 * np.pi / 2, (j + 0.5) / 90 * np.pi / 2, (k + 0.5) / 180 * np.pi

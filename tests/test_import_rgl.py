@@ -1,4 +1,4 @@
-"""`gonio import rgl`: our own reader of the RGL tensor files (fitting.formats.rgl) against the
+"""`gonio import rgl`: our own reader of the RGL tensor files (brdfdata.formats.rgl) against the
 independent implementation — Mitsuba 3's ``measured`` plugin, C++ in float32 — on the four
 published files shipped in data/rgl_brdf.
 
@@ -28,11 +28,11 @@ import numpy as np
 import pytest
 from conftest import REPO, data_file
 
-from fitting.directions import spherical_to_vector
-from fitting.formats.common import FormatError, SigmaRule, parse_grid
-from fitting.formats.rgl import RglImportOptions, import_rgl, load_rgl, measured_directions
-from fitting.formats.tensor_file import read_tensor_file, tensor_file_bytes, write_tensor_file
-from fitting.samples import Flags, read_samples, write_samples
+from brdfdata.directions import spherical_to_vector
+from brdfdata.formats.common import FormatError, SigmaRule, parse_grid
+from brdfdata.formats.rgl import RglImportOptions, import_rgl, load_rgl, measured_directions
+from brdfdata.formats.tensor_file import read_tensor_file, tensor_file_bytes, write_tensor_file
+from brdfdata.samples import Flags, read_samples, write_samples
 
 NAMES = ("paper_white", "colodur_napoli_4f", "satin_rosaline", "vch_golden_yellow")
 
@@ -235,7 +235,7 @@ def test_measured_directions_reproduce_the_table_nodes() -> None:
     path = data_file("rgl_brdf/satin_rosaline_rgb.bsdf")
     brdf = load_rgl(path)
     wi, wo, _ = measured_directions(brdf)
-    from fitting.formats.rgl import _elevation, phi2u, theta2u  # the plugin's conventions
+    from brdfdata.formats.rgl import _elevation, phi2u, theta2u  # the plugin's conventions
 
     wm = (wi + wo) / np.linalg.norm(wi + wo, axis=1, keepdims=True)
     phi_i = np.arctan2(wi[:, 1], wi[:, 0])

@@ -278,7 +278,7 @@ def _surface_point(origin: np.ndarray, ray: np.ndarray) -> np.ndarray:
     return origin - (origin[:, 2] / ray[:, 2])[:, None] * ray
 
 
-def _matches_first_order(label: str, ratio, predicted, keep, min_samples: int) -> None:  # noqa: ANN001
+def _matches_first_order(label: str, ratio, predicted, keep, min_samples: int) -> None:
     """The issue's bound: over the `keep` samples, the median of the measured effect (ratio − 1)
     over the predicted one is 1 within 20 %; prints both so a run shows the figures."""
     effect = (ratio[keep] - 1.0) / predicted[keep]

@@ -6,7 +6,7 @@ thread at its first Python step: measured on a 24 MP DNG, its decode took 24× i
 a GIL-holding kernel and 0.7× beside the same kernel with ``nogil``. The check is on the
 kernels' compile options, not a timing, so it cannot flake on a loaded machine; it fails for
 any kernel added without the flag. (numba's disk cache is keyed by source, not options: a build
-cached before a flag changed loads with the new flag reported; see fitting.kernels.njit.)
+cached before a flag changed loads with the new flag reported; see plumbing.numba_policy.njit.)
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import pkgutil
 import numba.core.registry
 import pytest
 
-PACKAGES = ("calibration", "fitting", "simulator", "plumbing", "acquisition")
+PACKAGES = ("calibration", "fitting", "simulator", "plumbing", "brdfdata", "acquisition")
 
 
 def _kernels() -> list[tuple[str, object]]:
@@ -43,7 +43,8 @@ def test_the_kernels_are_found() -> None:
     names = {n for n, _ in KERNELS}
     # the calibration's merge and geometry and the models' kernels, at least
     assert {"calibration.hdr._merge_par", "calibration.geometry._rays_par"} <= names
-    assert any(n.startswith("fitting.kernels.") for n in names) and len(names) > 30
+    kernel_modules = ("fitting.models.microfacet_kernels.", "fitting.models.lobe_kernels.")
+    assert any(n.startswith(kernel_modules) for n in names) and len(names) > 30
 
 
 @pytest.mark.parametrize("name,kernel", KERNELS, ids=[n for n, _ in KERNELS])

@@ -1,15 +1,29 @@
-"""The import DAG of DESIGN §2 is enforced by import-linter — and the contract can fail."""
+"""The house's import rules (docs/design.md §2, docs/architecture.md) are import-linter contracts
+in pyproject.toml — and every one of them can fail.
+
+Two linter runs on a copy of the tree prove it for every contract the file declares (read from
+pyproject.toml, so a new contract without a way to break it fails here): one copy where each
+contract gets one import that breaks it — an existing module of a low layer reaching a module of
+the highest layer of its container, a forbidden or private import — and one where every
+exhaustive contract's container gets a module no layer lists.
+"""
 
 from __future__ import annotations
 
 import shutil
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parent.parent
-PACKAGES = ("plumbing", "fitting", "acquisition", "calibration", "simulator", "gonio")
+PACKAGES = ("plumbing", "brdfdata", "fitting", "acquisition", "calibration", "simulator", "gonio")
 LINT = Path(sys.executable).with_name("lint-imports")
+CONTRACTS = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["importlinter"][
+    "contracts"
+]
 
 
 def _lint(root: Path) -> subprocess.CompletedProcess:
@@ -25,8 +39,52 @@ def _lint(root: Path) -> subprocess.CompletedProcess:
 
 def _copy_tree(dst: Path) -> None:
     shutil.copy(REPO / "pyproject.toml", dst / "pyproject.toml")
-    for pkg in PACKAGES:
+    for pkg in (*PACKAGES, "tools"):
         shutil.copytree(REPO / pkg, dst / pkg, ignore=shutil.ignore_patterns("__pycache__"))
+
+
+def _append(root: Path, module: str, line: str) -> None:
+    """Add ``line`` at the end of ``module``'s file in the copy at ``root``."""
+    path = root.joinpath(*module.split("."))
+    path = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+    path.write_text(path.read_text() + f"\n{line}  # noqa\n")
+
+
+def _first(layer: str) -> str:
+    return layer.split("|")[0].split(":")[0].strip()
+
+
+def _break(root: Path, contract: dict) -> None:
+    """One import in the copy that breaks ``contract`` (and is meant to break only it, where
+    the other contracts allow)."""
+    kind = contract["type"]
+    if kind == "layers" and "containers" in contract:
+        container = contract["containers"][0]
+        top, bottom = _first(contract["layers"][0]), _first(contract["layers"][-1])
+        _append(root, f"{container}.{bottom}", f"import {container}.{top}")
+    elif kind == "layers":  # the root packages: the ground floor imports the top one
+        top, bottom = _first(contract["layers"][0]), _first(contract["layers"][-1])
+        _append(root, f"{bottom}.errors", f"import {top}.cli")
+    elif kind == "forbidden":
+        source = contract["source_modules"][0]
+        target = contract["forbidden_modules"][0]
+        module = {"calibration": "calibration.radiometry", "plumbing": "plumbing.progress"}.get(
+            source, source
+        )
+        _append(
+            root,
+            module,
+            f"import {target}.scene" if target == "simulator" else f"import {target}.fit",
+        )
+    elif kind == "independence":
+        a, b = contract["modules"][:2]
+        _append(root, f"{a}.texels", f"import {b}.scene")
+    elif kind == "private_modules":
+        _append(root, "gonio.runs", "import gonio.cli._app")
+    elif kind == "private_names":
+        _append(root, "gonio.errors", "from plumbing.numba_policy import _policy")
+    else:
+        pytest.fail(f"no way to break a {kind!r} contract is written here: add one")
 
 
 def test_contracts_hold_on_the_repository(tmp_path: Path) -> None:
@@ -35,53 +93,41 @@ def test_contracts_hold_on_the_repository(tmp_path: Path) -> None:
     assert res.returncode == 0, res.stdout + res.stderr
 
 
-def test_contract_catches_acquisition_importing_simulator(tmp_path: Path) -> None:
+def test_every_contract_can_fail(tmp_path: Path) -> None:
     _copy_tree(tmp_path)
-    (tmp_path / "acquisition" / "sneaky.py").write_text("import simulator.scene  # noqa\n")
+    for contract in CONTRACTS:
+        _break(tmp_path, contract)
     res = _lint(tmp_path)
-    assert res.returncode != 0
-    assert "BROKEN" in res.stdout
+    kept = [c["name"] for c in CONTRACTS if f"{c['name']} BROKEN" not in res.stdout]
+    assert res.returncode != 0 and kept == [], res.stdout[-3000:]
 
 
-def test_contract_catches_fitting_importing_acquisition(tmp_path: Path) -> None:
+def test_every_exhaustive_contract_fails_on_a_module_no_layer_lists(tmp_path: Path) -> None:
     _copy_tree(tmp_path)
-    (tmp_path / "fitting" / "sneaky.py").write_text("import acquisition.store  # noqa\n")
-    assert _lint(tmp_path).returncode != 0
-
-
-def test_contract_catches_calibration_importing_simulator(tmp_path: Path) -> None:
-    _copy_tree(tmp_path)
-    (tmp_path / "calibration" / "sneaky.py").write_text("import simulator.scene  # noqa\n")
-    assert _lint(tmp_path).returncode != 0
-
-
-def _broken(res: subprocess.CompletedProcess, contract: str) -> bool:
-    """The named contract is reported BROKEN (the others may hold)."""
-    return res.returncode != 0 and f"{contract} BROKEN" in res.stdout
-
-
-def test_contract_catches_plumbing_importing_anything_of_ours(tmp_path: Path) -> None:
-    _copy_tree(tmp_path)
-    (tmp_path / "plumbing" / "sneaky.py").write_text("import fitting.models  # noqa\n")
-    assert _broken(_lint(tmp_path), "Layered pipeline (DESIGN section 2)")
-
-
-def test_contract_catches_a_front_door_layer_running_back_up(tmp_path: Path) -> None:
-    _copy_tree(tmp_path)
-    (tmp_path / "gonio" / "report.py").write_text(
-        (REPO / "gonio" / "report.py").read_text() + "\nimport gonio.pipeline  # noqa\n"
-    )
-    assert _broken(_lint(tmp_path), "The front door's own layers (docs/architecture.md)")
-
-
-def test_contract_catches_the_studies_importing_the_simulator(tmp_path: Path) -> None:
-    _copy_tree(tmp_path)
-    (tmp_path / "gonio" / "studies" / "sneaky.py").write_text("import simulator.render  # noqa\n")
+    exhaustive = [c for c in CONTRACTS if c.get("exhaustive")]
+    assert len(exhaustive) >= 10  # each package and sub-package with floors of its own
+    for contract in exhaustive:
+        folder = tmp_path.joinpath(*contract["containers"][0].split("."))
+        (folder / "unlisted_room.py").write_text('"""A module no layer lists."""\n')
     res = _lint(tmp_path)
-    assert _broken(res, "Only the simulator and gonio.backends import the simulator")
-    # The same import from the one allowed door is fine (this contract holds without it).
-    (tmp_path / "gonio" / "studies" / "sneaky.py").unlink()
-    (tmp_path / "gonio" / "backends.py").write_text(
-        (REPO / "gonio" / "backends.py").read_text() + "\nimport simulator.render  # noqa\n"
-    )
-    assert _lint(tmp_path).returncode == 0
+    kept = [c["name"] for c in exhaustive if f"{c['name']} BROKEN" not in res.stdout]
+    assert kept == [], res.stdout[-3000:]
+    # ... and the layered contracts without containers (the root packages) list every root
+    layered = [c for c in CONTRACTS if c["type"] == "layers" and "containers" not in c]
+    for contract in layered:
+        listed = {m.strip() for layer in contract["layers"] for m in layer.split("|")}
+        assert listed == set(PACKAGES), contract["name"]
+
+
+def test_every_package_has_an_exhaustive_contract() -> None:
+    """Every package and sub-package of ours (a folder with modules of its own) has its floors
+    written down, so no module can sit in a package without a place in its layers."""
+    containers = {c["containers"][0] for c in CONTRACTS if c.get("exhaustive")}
+    packages = {
+        ".".join(p.parent.relative_to(REPO).parts)
+        for pkg in PACKAGES
+        for p in (REPO / pkg).rglob("__init__.py")
+        if len([m for m in p.parent.glob("*.py") if m.name != "__init__.py"]) > 1
+        or any(d.is_dir() and (d / "__init__.py").exists() for d in p.parent.iterdir())
+    }
+    assert packages <= containers, sorted(packages - containers)

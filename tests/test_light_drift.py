@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from acquisition.config import PlanConfig, load_rig
+from brdfdata.directions import spherical_to_vector
 from calibration.reduce import ReduceOptions, reduce_run
-from fitting.directions import spherical_to_vector
 from gonio.pipeline import AcquireSpec, acquire
 from simulator.render import Renderer
 from simulator.scene import load_scene

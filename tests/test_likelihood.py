@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from brdfdata.samples import Flags, SampleTable
 from fitting import models
 from fitting.likelihood import Likelihood
 from fitting.priors import ParameterSpace, PriorsError, load_priors
-from fitting.samples import Flags, SampleTable
 
 
 def _table(theta_i, theta_o, phi_o, channel, f, sigma, flags=None) -> SampleTable:
@@ -265,8 +265,8 @@ def test_energy_prior_albedo():
     space.energy_prior = albedo_prior(lam, space)
     lp = space.log_prior(np.array([[0.999], [0.3]]))
     assert np.all(lp == 0.0)
-    # Torrance-Sparrow, F = 1: kd = 0.6 plus a ks = 1, m = 0.3 lobe (albedo ≈ 0.9+, DESIGN §6
-    # gives 0.92–1.0 for Beckmann m = 0.3) is far above 1; kd = 0.2 with ks = 0.3 is far below.
+    # Torrance-Sparrow, F = 1: kd = 0.6 plus a ks = 1, m = 0.3 lobe (albedo ≈ 0.9+, docs/design.md
+    # §6 gives 0.92–1.0 for Beckmann m = 0.3) is far above 1; kd = 0.2 with ks = 0.3 is far below.
     ts = models.get("torrance-sparrow", fresnel="none")
     space = ParameterSpace.build(ts, ["R"])
     space.energy_prior = albedo_prior(ts, space)

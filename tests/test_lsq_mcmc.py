@@ -10,18 +10,18 @@ import emcee
 import numpy as np
 import pytest
 
+from brdfdata.directions import spherical_to_vector
+from brdfdata.samples import SampleTable
 from fitting import models
-from fitting.directions import spherical_to_vector
 from fitting.fit import FitOptions, fit_samples
 from fitting.likelihood import Likelihood
 from fitting.lsq import fit_least_squares
 from fitting.mcmc import ChainFile, McmcOptions, run_mcmc, split_rhat
 from fitting.priors import ParameterSpace
-from fitting.samples import SampleTable
 
 
 def ts_reference(kd, ks, m, wi, wo):
-    """Lambert + Beckmann lobe, V-cavity G, F = 1, written from DESIGN §5 independently of
+    """Lambert + Beckmann lobe, V-cavity G, F = 1, written from docs/design.md §5 independently of
     fitting.models: f = kd/π + ks · D_norm G / (4 cos θ_i cos θ_o),
     D_norm = exp(−tan²θ_h/m²) / (π m² cos⁴θ_h)."""
     ci, co = wi[:, 2], wo[:, 2]

@@ -38,8 +38,9 @@ from multiprocessing import get_context
 import numpy as np
 import pytest
 
-from fitting.data_paths import find_data
-from fitting.directions import normalize, vector_to_spherical
+from brdfdata.data_paths import find_data
+from brdfdata.directions import normalize, vector_to_spherical
+from brdfdata.samples import SampleTable
 from fitting.fit import FitOptions, best_approximation, fit_samples
 from fitting.mismatch import (
     OTHER_REGIONS,
@@ -50,7 +51,6 @@ from fitting.mismatch import (
     region_label,
     sandwich_adjust,
 )
-from fitting.samples import SampleTable
 
 REPEATS = 30
 N_MEASURED = 2500
@@ -348,10 +348,10 @@ def test_matched_model_is_not_widened() -> None:
 def test_region_index_in_blocks_is_the_direct_binning() -> None:
     """region_index works in blocks of rows (bounded temporaries); across a block boundary,
     and for (k, n, 3) input, it equals the θ_h, θ_d bands read directly off the half/difference
-    angles of the whole set (fitting.rusinkiewicz), bin edges from the module's constants."""
-    from fitting.directions import uniform_hemisphere
+    angles of the whole set (brdfdata.rusinkiewicz), bin edges from the module's constants."""
+    from brdfdata.directions import uniform_hemisphere
+    from brdfdata.rusinkiewicz import to_half_diff
     from fitting.mismatch import _REGION_BLOCK, REGION_THETA_D, REGION_THETA_H
-    from fitting.rusinkiewicz import to_half_diff
 
     rng = np.random.default_rng(4)
     n = _REGION_BLOCK + 777  # two blocks, the second partial

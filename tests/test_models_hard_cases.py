@@ -1,4 +1,4 @@
-"""Hard cases of DESIGN §5: grazing angles, the pole, retro and opposite directions, m from
+"""Hard cases of docs/design.md §5: grazing angles, the pole, retro and opposite directions, m from
 1e-4 to 3, Phong n up to 1e6, η = 1, η < 1, large k. Hypothesis over the domain plus explicit
 limits computed independently of the model code."""
 
@@ -10,8 +10,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.special import erfc
 
-from fitting import fresnel, models
-from fitting.directions import spherical_to_vector
+from brdfdata.directions import spherical_to_vector
+from fitting import models
+from fitting.models import fresnel
 
 SETTINGS = settings(
     max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
@@ -242,15 +243,15 @@ def test_fresnel_edge_cases_inside_the_model():
     assert f_b == pytest.approx(g1 * rs / 2, rel=1e-12)
 
 
-# --- every registered model (fitting.registry), on the parameter sets its entry declares --------
+# --- every registered model (fitting.models), on the parameter sets its entry declares --------
 
 
 def _registry_cases():
-    from fitting import registry
+    from fitting import models
 
     out = []
-    for name in registry.names():
-        for options, sets in registry.entry(name).checks:
+    for name in models.names():
+        for options, sets in models.entry(name).checks:
             for i, p in enumerate(sets):
                 out.append(pytest.param(name, dict(options), dict(p), id=f"{name}-{i}-{options}"))
     return out

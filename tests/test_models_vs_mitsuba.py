@@ -1,7 +1,7 @@
 """torrance-sparrow (Smith, conductor; Beckmann and GGX) against Mitsuba 3's roughconductor.
 
 Mitsuba is an independent implementation of the same physics: π-normalised Beckmann D with
-α = m, separable Smith G with Walter's rational G₁, exact conductor Fresnel (DESIGN §7). Its
+α = m, separable Smith G with Walter's rational G₁, exact conductor Fresnel (docs/design.md §7). Its
 ``bsdf.eval`` returns f·cos θ_o for si.wi = ω_i and the argument wo = ω_o (both pointing away
 from the surface, local frame = sample frame), so we compare eval/cos θ_o with f.
 
@@ -22,10 +22,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from brdfdata.directions import reflect, spherical_to_vector, uniform_hemisphere
 from fitting import models
-from fitting.directions import reflect, spherical_to_vector, uniform_hemisphere
 
-ETA, K = 0.2004, 3.9129  # copper, red channel (DESIGN §6)
+ETA, K = 0.2004, 3.9129  # copper, red channel (docs/design.md §6)
 
 _PROBE = """
 import mitsuba as mi, drjit as dr
@@ -42,7 +42,7 @@ print(float(v[0][0]) > 0)
 
 @pytest.fixture(scope="module")
 def variant():
-    # LLVM 15/16 can abort the whole process (DESIGN §7): probe in a subprocess first.
+    # LLVM 15/16 can abort the whole process (docs/design.md §7): probe in a subprocess first.
     try:
         res = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, timeout=120)
         ok = res.returncode == 0 and res.stdout.strip().endswith(b"True")

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 from scipy import special
 
-from fitting import models, multilobe
-from fitting.directions import spherical_to_vector, uniform_hemisphere
+from brdfdata.directions import spherical_to_vector, uniform_hemisphere
+from brdfdata.samples import SampleTable
+from fitting import models
 from fitting.fit import FitOptions, fit_samples
-from fitting.samples import SampleTable
+from fitting.models import multilobe
 
 OPTIONS = [
     {"distribution": d, "distribution2": d2, "shadowing": s, "fresnel": f}

@@ -2,10 +2,10 @@
 Cook-Torrance onto our torrance-sparrow, the shipped scenes, and a parameter-recovery check
 through the simulated rig.
 
-Ground truth: the published values quoted in DESIGN §6 (from the paper's tables via bbm), and
-an independent transcription of bbm's NganCookTorrance formula (include/bsdfmodel/ngan.h,
-microfacet.h, ndf/beckmann.h, maskingshadowing/vgroove.h, fresnel_schlick.h) written here in
-plain numpy — not fitting.models.
+Ground truth: the published values quoted in docs/design.md §6 (from the paper's tables via bbm),
+and an independent transcription of bbm's NganCookTorrance formula (include/bsdfmodel/ngan.h,
+microfacet.h, ndf/beckmann.h, maskingshadowing/vgroove.h, fresnel_schlick.h) written here in plain
+numpy — not fitting.models.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import pytest
 from conftest import data_dir, data_file
 
 from acquisition.config import PlanConfig
+from brdfdata.samples import Flags
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting import models
 from fitting.fit import FitOptions, fit_samples
@@ -28,13 +29,12 @@ from fitting.ngan import (
     ngan_scene_material,
     read_ngan_fits,
 )
-from fitting.samples import Flags
 from gonio.pipeline import AcquireSpec, acquire
 from simulator.scene import ModelMaterial, load_scene
 
 REPO = Path(__file__).resolve().parent.parent
 
-# DESIGN §6: Ngan, Durand & Matusik 2005, Cook-Torrance fits (Beckmann m, Schlick F0).
+# docs/design.md §6: Ngan, Durand & Matusik 2005, Cook-Torrance fits (Beckmann m, Schlick F0).
 PUBLISHED_CT = {
     "nickel": (0.0424, 0.733),
     "teflon": (0.139, 0.0203),
@@ -193,7 +193,7 @@ def test_nickel_sharp_metal_lobe_through_the_rig(tmp_path) -> None:
     """Ngan's nickel (m = 0.0424: a lobe ~3° wide, peak f ≈ 8 sr⁻¹, diffuse 0.01 sr⁻¹) acquired
     and calibrated: every well-exposed sample agrees with the scene's own BSDF at its exact
     directions (Renderer.truth_bsdf of the wrapped model; independent of the calibration)."""
-    from fitting.directions import spherical_to_vector
+    from brdfdata.directions import spherical_to_vector
     from simulator.render import Renderer
 
     plan = PlanConfig.model_validate(

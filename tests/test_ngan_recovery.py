@@ -1,7 +1,7 @@
 """Ngan et al. 2005's published Cook-Torrance fits, rendered as a Python BSDF in the simulator,
 recovered within their 95 % intervals (issue 7, acceptance "Recovery").
 
-Truth: the published values (DESIGN §6: nickel m = 0.0424, F₀ = 0.733; teflon m = 0.139,
+Truth: the published values (docs/design.md §6: nickel m = 0.0424, F₀ = 0.733; teflon m = 0.139,
 F₀ = 0.0203), and the per-channel albedos of the same table (data/brdf_fits, bbm's
 ngan_cooktorrance.fit) mapped by fitting.ngan (kd = ρ_d, ks = 4·albedo/π; the mapping is
 checked against an independent transcription of bbm's formula in tests/test_ngan.py).
@@ -11,7 +11,7 @@ Mitsuba as the registered Python BSDF (simulator.materials, "gonio_model") and e
 through Mitsuba's ``bsdf.eval``/cos θ_i (simulator.truth.mitsuba_brdf, float32 like any
 Mitsuba render) at an isotropic gonioreflectometer plan: 5 incidence angles, an in-plane
 specular scan in 0.5° steps near the mirror, azimuth offsets, and a coarse hemisphere grid
-(fitting.directions.isotropic_gonio_directions). Nickel's lobe is sharp (m = 0.0424: D falls
+(brdfdata.directions.isotropic_gonio_directions). Nickel's lobe is sharp (m = 0.0424: D falls
 to 1/e at θ_h = m, i.e. |θ_o − θ_i| ≈ 2m ≈ 4.9° in the plane): the plan puts ≥ 8 samples per
 incidence angle inside that, asserted below. Noise: Gaussian, σ = 1 % · f + 10⁻⁴ sr⁻¹ (the
 floor is well below nickel's diffuse level kd/π ≥ 0.0045 sr⁻¹, so the small diffuse albedo is
@@ -37,13 +37,13 @@ import numpy as np
 import pytest
 from conftest import data_file
 
-from fitting.directions import isotropic_gonio_directions
+from brdfdata.directions import isotropic_gonio_directions
 from fitting.fit import FitOptions, fit_samples
 from fitting.ngan import COOK_TORRANCE_OPTIONS, ngan_cook_torrance_parameters, read_ngan_fits
 from simulator.scene import load_scene
 from simulator.truth import direct_samples
 
-# DESIGN §6 (Ngan, Durand & Matusik 2005): (m, F₀).
+# docs/design.md §6 (Ngan, Durand & Matusik 2005): (m, F₀).
 PUBLISHED = {"nickel": (0.0424, 0.733), "teflon": (0.139, 0.0203)}
 REPEATS = 4
 

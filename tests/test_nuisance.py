@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fitting.directions import isotropic_gonio_directions, spherical_to_vector, vector_to_spherical
+from brdfdata.directions import isotropic_gonio_directions, spherical_to_vector, vector_to_spherical
 from fitting.fit import FitOptions, fit_samples
 from fitting.nuisance import shared_errors, shifted_directions
 from simulator.truth import direct_samples, material_reference_parameters
@@ -105,7 +105,7 @@ def test_a_shared_scale_is_marginalised_by_the_chain(truth_table) -> None:
     assert any("marginalised as nuisance" in w for w in fit.diagnostics["budget"])
     # The report's parameter table shows the split for every model parameter and says the
     # intervals hold the shared errors (they were marginalised), not "statistical only".
-    from gonio.report_sections import parameter_table
+    from gonio.report.sections import parameter_table
 
     html_table = parameter_table(fit.to_dict(), {})
     assert "median ± 68 % (all errors)" in html_table and "systematic σ" in html_table
@@ -163,7 +163,7 @@ def test_the_fit_recovers_the_arms_zero_errors_of_a_simulated_rig() -> None:
     old = fit_samples(table, opt.replace(shared_errors=False))
     assert old.goodness["chi2_red"] > 5, old.goodness
 
-    def width(f) -> float:  # noqa: ANN001
+    def width(f) -> float:
         return f.parameters["m"]["p97.5"] - f.parameters["m"]["p2.5"]
 
     assert width(old) > 10 * width(fit), (width(old), width(fit))

@@ -1,7 +1,7 @@
 """Oren-Nayar (1994) against an independent numerical integration of the V-cavity model it is
 built on, its limits (σ → 0 is Lambert), the retro-reflection peak, and the kernel vs numpy.
 
-The independent integration (written here, sharing no code with fitting.oren_nayar):
+The independent integration (written here, sharing no code with fitting.models.oren_nayar):
 * facet normals a(θ_a, φ_a) with θ_a distributed ∝ exp(−θ_a²/2σ²) sin θ_a on [0, π/2] (a
   Gaussian of slope angles per solid angle) and φ_a uniform, integrated by the *quantile*
   midpoint rule (θ_a at the (k + ½)/K quantiles of its distribution, equal weights) × a
@@ -21,8 +21,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fitting import models, oren_nayar
-from fitting.directions import spherical_to_vector, uniform_hemisphere
+from brdfdata.directions import spherical_to_vector, uniform_hemisphere
+from fitting import models
+from fitting.models import oren_nayar
 
 
 def _theta_quantiles(sigma: float, k: int) -> np.ndarray:

@@ -22,8 +22,9 @@ from acquisition.plans import (
     retro_plan_config,
     retro_poses,
 )
-from fitting import coverage, registry
-from fitting.directions import spherical_to_vector
+from brdfdata import coverage
+from brdfdata.directions import spherical_to_vector
+from fitting import models
 
 REPO = Path(__file__).resolve().parent.parent
 INPLANE = load_rig(REPO / "configs" / "rigs" / "inplane.toml")
@@ -75,7 +76,7 @@ def test_retro_plan_reaches_the_occlusion_limit_and_records_the_gap(rig):
     assert len(plan.poses) == 3 * 7 * n_rings - sum(
         1 for ti in (20.0, 40.0, 60.0) for off in (0, 1, 2, 4, 8, 15, 25) if ti + sep + off > 85
     )
-    report = plan_coverage(expand_grid(cfg, rig), registry.entry("oren-nayar").needs)
+    report = plan_coverage(expand_grid(cfg, rig), models.entry("oren-nayar").needs)
     assert report.retro_gap_deg == pytest.approx(sep, abs=1e-9)
     assert "retro" not in report.missing
 
@@ -101,7 +102,7 @@ def test_shipped_model_plans_load_and_build_on_both_rigs():
 def test_coverage_says_what_a_model_needs_and_the_plan_left_empty():
     iso_inplane = build_plan(TWO_ARM, load_plan(REPO / "configs" / "plans" / "inplane.toml"))
     poses = [p.pose.deg() for p in iso_inplane.poses]
-    aniso_needs = registry.entry("torrance-sparrow-anisotropic").needs
+    aniso_needs = models.entry("torrance-sparrow-anisotropic").needs
     assert "orientations" in aniso_needs
     # an in-plane plan at one sample orientation cannot determine an anisotropic lobe ...
     rep = plan_coverage(poses, aniso_needs)
@@ -110,12 +111,12 @@ def test_coverage_says_what_a_model_needs_and_the_plan_left_empty():
     # ... the anisotropic plan can; it leaves the retro region empty, which Oren-Nayar needs
     cfg = expand_grid(load_plan(REPO / "configs" / "plans" / "anisotropic.toml"))
     assert plan_coverage(cfg, aniso_needs).missing == []
-    on = plan_coverage(cfg, registry.entry("oren-nayar").needs)
+    on = plan_coverage(cfg, models.entry("oren-nayar").needs)
     assert "retro" in on.missing
     assert {r.region: r.status for r in on.regions}["retro"] == "empty"
     # every registered model's needs are known regions
-    for name in registry.names():
-        assert set(registry.entry(name).needs) <= set(coverage.REGIONS), name
+    for name in models.names():
+        assert set(models.entry(name).needs) <= set(coverage.REGIONS), name
     with pytest.raises(ValueError, match="unknown coverage region"):
         coverage.coverage_report(["everywhere"], np.array([[0, 0, 1.0]]), np.array([[0, 0, 1.0]]))
 

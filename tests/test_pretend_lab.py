@@ -108,8 +108,8 @@ def test_lab_rig_end_to_end_on_the_pretend_lab(tmp_path: Path) -> None:
     assert cal.returncode == 0, cal.stderr
     # ... and prints the samples' uncertainty budget, GUM style: one row per component the
     # table's metadata records, with its type (the words may wrap in the table's cells)
+    from brdfdata.samples import read_samples
     from fitting.budget import read_budget
-    from fitting.samples import read_samples
 
     budget = read_budget(read_samples(run / "samples.parquet").metadata)
     assert budget and "Uncertainty budget" in cal.stdout
@@ -141,7 +141,7 @@ def _acquire_cmd(rig: Path, plan: Path, run: Path, answers: Path) -> list[str]:
     ]  # fmt: skip
 
 
-def _kill_when(proc: subprocess.Popen, run: Path, ready) -> tuple[int, int]:  # noqa: ANN001
+def _kill_when(proc: subprocess.Popen, run: Path, ready) -> tuple[int, int]:
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and proc.poll() is None:
         n = _done(run)

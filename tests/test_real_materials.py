@@ -25,9 +25,9 @@ import tomli_w
 from conftest import data_dir, data_file
 
 from acquisition.config import PlanConfig
+from brdfdata.directions import spherical_to_vector
+from brdfdata.samples import Flags
 from calibration.reduce import ReduceOptions, reduce_run
-from fitting.directions import spherical_to_vector
-from fitting.samples import Flags
 from gonio.pipeline import AcquireSpec, acquire
 from simulator.render import Renderer
 from simulator.scene import load_scene

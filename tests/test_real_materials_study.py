@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
+from brdfdata.samples import SampleTable
 from fitting.heldout import heldout_errors, heldout_grid, lambert_floor
 from fitting.mcmc import ConvergenceTarget, convergence_verdict, extend_chain
-from fitting.samples import SampleTable
 from gonio.errors import UserError
 from gonio.studies import materials_document as doc
 from gonio.studies import materials_sweep as rm
@@ -294,7 +294,7 @@ def test_subsample_per_pose_keeps_every_pose_and_whole_regions() -> None:
 
 
 def test_missing_data_is_one_line_naming_where_it_looked(monkeypatch, tmp_path) -> None:
-    from fitting import data_paths
+    from brdfdata import data_paths
 
     places = [tmp_path / "a" / "data", tmp_path / "b" / "data"]
     monkeypatch.setattr(data_paths, "data_roots", lambda: places)
@@ -306,7 +306,7 @@ def test_missing_data_is_one_line_naming_where_it_looked(monkeypatch, tmp_path) 
 
 
 def test_data_env_comes_first(monkeypatch, tmp_path) -> None:
-    from fitting.data_paths import data_roots, find_data
+    from brdfdata.data_paths import data_roots, find_data
 
     (tmp_path / "rgl_brdf").mkdir()
     (tmp_path / "rgl_brdf" / "paper_white_rgb.bsdf").write_bytes(b"x")
@@ -320,7 +320,7 @@ def test_data_env_comes_first(monkeypatch, tmp_path) -> None:
 
 
 def test_cli_missing_data_prints_one_line(monkeypatch, tmp_path, capsys) -> None:
-    from fitting import data_paths
+    from brdfdata import data_paths
     from gonio import cli
 
     places = [tmp_path / "nowhere" / "data"]

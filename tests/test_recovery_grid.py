@@ -2,11 +2,11 @@
 Au and Cu, and a blendbsdf of diffuse + roughconductor, for m ∈ {0.03, 0.1, 0.3, 0.6}.
 
 Ground truth is independent of the code under test: m = the scene's Beckmann α (Mitsuba's
-roughconductor uses α = m, the RMS slope, DESIGN §7), kd = (1 − w)ρ and ks = w·specular
+roughconductor uses α = m, the RMS slope, docs/design.md §7), kd = (1 − w)ρ and ks = w·specular
 reflectance from the blend's config, and the conductor's RGB (η, k) are read back from the BSDF
 Mitsuba loaded (simulator.truth.mitsuba_conductor_ior: its own reduction of the spectral Au/Cu
 tables to RGB). The data are Mitsuba's ``bsdf.eval``/cos θ_i at the directions of an isotropic
-gonioreflectometer plan (fitting.directions.isotropic_gonio_directions: 5 incidence angles,
+gonioreflectometer plan (brdfdata.directions.isotropic_gonio_directions: 5 incidence angles,
 an in-plane specular scan in 0.5° steps near the mirror — so even the m = 0.03 lobe, 1/e wide
 at |θ_o − θ_i| ≈ 2m ≈ 3.4°, holds ≥ 6 samples per side per θ_i — out-of-plane azimuth offsets,
 and a coarse hemisphere grid for the diffuse part), with Gaussian noise σ = 1 % · f + 0.001 sr⁻¹
@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fitting.directions import isotropic_gonio_directions
+from brdfdata.directions import isotropic_gonio_directions
 from fitting.fit import FitOptions, fit_samples
 from simulator.scene import BlendMaterial, DiffuseMaterial, RoughConductorMaterial
 from simulator.truth import direct_samples, material_reference_parameters
@@ -55,9 +55,9 @@ def material(kind: str, m: float):
 
 
 def test_mitsuba_rgb_ior_is_the_published_rgb_value() -> None:
-    """The Fresnel truth read from Mitsuba is the RGB (η, k) of DESIGN §6 (Mitsuba's spectral
-    tables reduced to RGB), to the 4 digits printed there — so it is a real conductor, not a
-    default such as the perfect mirror."""
+    """The Fresnel truth read from Mitsuba is the RGB (η, k) of docs/design.md §6 (Mitsuba's
+    spectral tables reduced to RGB), to the 4 digits printed there — so it is a real conductor,
+    not a default such as the perfect mirror."""
     au = material_reference_parameters(RoughConductorMaterial(alpha=0.1, conductor="Au"))
     cu = material_reference_parameters(RoughConductorMaterial(alpha=0.1, conductor="Cu"))
     design = {
@@ -67,7 +67,7 @@ def test_mitsuba_rgb_ior_is_the_published_rgb_value() -> None:
     for name, truth in (("Au", au), ("Cu", cu)):
         eta = [truth[f"eta_{c}"] for c in "RGB"]
         k = [truth[f"k_{c}"] for c in "RGB"]
-        # DESIGN's values come from another Mitsuba/spectral reduction: agree to ≤ 0.5 %.
+        # docs/design.md §6's values come from another Mitsuba/spectral reduction: agree to ≤ 0.5 %.
         np.testing.assert_allclose(eta, design[name][0], rtol=5e-3)
         np.testing.assert_allclose(k, design[name][1], rtol=5e-3)
 

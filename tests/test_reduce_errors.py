@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from acquisition.store import RunStore
+from brdfdata.samples import read_samples
 from calibration.reduce import CalibrationError, reduce_run
-from fitting.samples import read_samples
 from tests._small_runs import small_run
 
 REPO = Path(__file__).resolve().parent.parent

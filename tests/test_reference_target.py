@@ -27,11 +27,11 @@ import pytest
 from acquisition.clock import VirtualClock
 from acquisition.config import PlanConfig, ReferenceConfig, load_rig
 from acquisition.operator import AutoOperator
+from brdfdata.directions import spherical_to_vector
+from brdfdata.samples import Flags
 from calibration.darks import calibration_frames
 from calibration.reduce import CalibrationError, ReduceOptions, reduce_run
 from calibration.reference import FRefTable, load_f_ref_table
-from fitting.directions import spherical_to_vector
-from fitting.samples import Flags
 from gonio.pipeline import AcquireSpec, acquire, capture_calibration
 from simulator.camera import SimCamera
 from simulator.render import Renderer
@@ -69,7 +69,7 @@ def run(tmp_path_factory: pytest.TempPathFactory):
     )
     assert res.outcome.complete
     refs = calibration_frames(out, "reference")
-    # Three reference poses × every exposure, recorded raw in the run (DESIGN §4).
+    # Three reference poses × every exposure, recorded raw in the run (docs/design.md §4).
     assert len(refs) == 3 * len(EXPOSURES_S)
     assert all((out / e["path"]).exists() for e in refs)
     return out, Renderer(scene)

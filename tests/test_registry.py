@@ -6,16 +6,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fitting import compare, models, registry
-from fitting.directions import uniform_hemisphere
+from brdfdata.directions import uniform_hemisphere
+from fitting import compare, models
+from fitting.models import seed
 from fitting.ngan import COOK_TORRANCE_OPTIONS
 
 
 def test_every_entry_builds_with_its_defaults_and_declares_its_parts():
-    assert models.names() == registry.names()
-    for name in registry.names():
-        e = registry.entry(name)
-        m = registry.get(name)
+    assert models.names() == models.names()
+    for name in models.names():
+        e = models.entry(name)
+        m = models.get(name)
         assert m.name == name  # variants report their own name
         assert e.summary and e.reference
         assert {"reciprocal", "energy_conserving", "isotropic"} <= set(m.flags)
@@ -23,16 +24,16 @@ def test_every_entry_builds_with_its_defaults_and_declares_its_parts():
             assert o.default in o.allowed
         # a model's options rebuild it (what a fit JSON stores is enough to reload it)
         if e.base is None:
-            assert registry.get(name, **m.options).options == m.options
-        d = registry.describe(name)
+            assert models.get(name, **m.options).options == m.options
+        d = models.describe(name)
         assert d["parameters"] == m.parameters and d["options"] == e.options
 
 
 def test_aliases_and_variants():
-    assert registry.resolve("ts") == "torrance-sparrow"
-    assert registry.resolve("ts-anisotropic") == "torrance-sparrow-anisotropic"
+    assert models.resolve("ts") == "torrance-sparrow"
+    assert models.resolve("ts-anisotropic") == "torrance-sparrow-anisotropic"
     assert models.get("on").name == "oren-nayar"
-    assert set(registry.aliases().values()) <= set(registry.names())
+    assert set(models.aliases().values()) <= set(models.names())
     # a variant is its base with options fixed — numerically identical
     rng = np.random.default_rng(0)
     wi, wo = uniform_hemisphere(200, rng), uniform_hemisphere(200, rng)
@@ -54,8 +55,8 @@ def test_errors_name_what_is_allowed():
     with pytest.raises(KeyError, match="unknown model 'cook'"):
         models.get("cook")
     with pytest.raises(ValueError, match="known: lambert"):
-        registry.resolve("nope")
-    assert str(registry.UnknownModelError("x y")) == "x y"  # no KeyError quotes
+        models.resolve("nope")
+    assert str(models.UnknownModelError("x y")) == "x y"  # no KeyError quotes
     with pytest.raises(ValueError) as exc:
         models.get("torrance-sparrow", anisotropy="0.5")
     msg = str(exc.value)
@@ -66,23 +67,23 @@ def test_errors_name_what_is_allowed():
     with pytest.raises(ValueError, match="takes no options"):
         models.get("lambert", fresnel="none")
     with pytest.raises(ValueError, match="already registered"):
-        registry.register(registry.ModelEntry("ward", models.Lambert))
+        models.register(models.ModelEntry("ward", seed.Lambert))
 
 
 def test_group_all_and_applicable_options_drive_the_comparison():
-    assert registry.group("all") == [
+    assert models.group("all") == [
         "lambert",
         "phong",
         "phong-normalized",
         "blinn-phong",
         "torrance-sparrow",
     ]
-    assert registry.applicable_options("lambert", {"fresnel": "none"}) == {}
-    assert registry.applicable_options("torrance-sparrow", {"fresnel": "none", "x": "1"}) == {
+    assert models.applicable_options("lambert", {"fresnel": "none"}) == {}
+    assert models.applicable_options("torrance-sparrow", {"fresnel": "none", "x": "1"}) == {
         "fresnel": "none"
     }
     cands = compare.candidates("all", {"fresnel": "none"})
-    assert [c.model for c in cands] == registry.group("all")
+    assert [c.model for c in cands] == models.group("all")
     assert {c.label: c.options for c in cands}["torrance-sparrow"] == {"fresnel": "none"}
     # a single model by variant or alias; unknown options fail with the allowed ones
     assert compare.candidates("ts-ggx-smith")[0].model == "ts-ggx-smith"

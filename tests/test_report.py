@@ -177,8 +177,8 @@ def test_the_browser_check_can_fail(tmp_path: Path) -> None:
 def test_coverage_names_what_the_samples_leave_empty() -> None:
     """Samples far from the mirror direction: a Torrance-Sparrow fit needs the specular peak,
     and the report's coverage section says, in red, that it is missing."""
-    from fitting.directions import spherical_to_vector
-    from gonio.report_sections import coverage_parts
+    from brdfdata.directions import spherical_to_vector
+    from gonio.report.sections import coverage_parts
     from simulator.scene import DiffuseMaterial
     from simulator.truth import direct_samples
 

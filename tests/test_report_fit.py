@@ -24,9 +24,9 @@ def _run(monkeypatch, capsys, *args):
 @pytest.fixture(scope="module")
 def imported_fit(tmp_path_factory):
     """An RGL material imported on a coarse grid and fitted with a short MCMC chain."""
+    from brdfdata.formats.convert import ImportOptions, import_samples
+    from brdfdata.samples import write_samples
     from fitting.fit import FitOptions, fit_samples
-    from fitting.formats.convert import ImportOptions, import_samples
-    from fitting.samples import write_samples
 
     tmp = tmp_path_factory.mktemp("fitreport")
     grid = "theta_i=10:70:20,theta_o=0:80:10,phi_o=0:180:30"
@@ -67,8 +67,8 @@ def test_wrong_use_is_one_line(args, fragment, imported_fit, tmp_path, monkeypat
 
 
 def test_fit_of_other_samples_is_refused(imported_fit, tmp_path) -> None:
-    from fitting.formats.convert import ImportOptions, import_samples
-    from fitting.samples import write_samples
+    from brdfdata.formats.convert import ImportOptions, import_samples
+    from brdfdata.samples import write_samples
     from gonio.errors import UserError
     from gonio.report import write_fit_report
 
@@ -93,9 +93,9 @@ def test_report_refuses_samples_the_fit_was_not_made_from(imported_fit, tmp_path
     the file it was made from is accepted. On the previous code both were reported."""
     import dataclasses
 
+    from brdfdata.samples import read_samples, write_samples
     from fitting.fit import FitOptions, fit_samples
     from fitting.result import FitResultError, read_fit
-    from fitting.samples import read_samples, write_samples
     from gonio.report import write_fit_report
     from plumbing.hashing import sha256_file
 

@@ -15,7 +15,7 @@ index and k = 0: the complex-IOR conductor Fresnel with k = 0 *is* the dielectri
 η > 1; checked below against our dielectric), so there the model is exact.
 
 Data: Mitsuba ``bsdf.eval``/cos θ_i at an isotropic gonioreflectometer plan
-(fitting.directions.isotropic_gonio_directions), σ = 1 % · f + 0.001 sr⁻¹, fixed seeds.
+(brdfdata.directions.isotropic_gonio_directions), σ = 1 % · f + 0.001 sr⁻¹, fixed seeds.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from brdfdata.directions import isotropic_gonio_directions
 from fitting import models
-from fitting.directions import isotropic_gonio_directions
 from fitting.fit import FitOptions, fit_samples
 from simulator.scene import (
     BlendMaterial,

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fitting.directions import spherical_to_vector, uniform_hemisphere
-from fitting.rusinkiewicz import from_half_diff, to_half_diff
+from brdfdata.directions import spherical_to_vector, uniform_hemisphere
+from brdfdata.rusinkiewicz import from_half_diff, to_half_diff
 
 
 def _angle(a, b):

@@ -9,7 +9,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from fitting.samples import SamplesError, SampleTable, read_samples, write_samples
+from brdfdata.samples import SamplesError, SampleTable, read_samples, write_samples
 
 
 def _valid(path) -> pa.Table:

@@ -32,7 +32,7 @@ HERE = Path(__file__).resolve().parent
 SIM_YAML = HERE / "instruments" / "scpi_lamp.yaml"
 
 
-def sim_settings(**kw) -> ScpiConfig:  # noqa: ANN003
+def sim_settings(**kw) -> ScpiConfig:
     """The pyvisa-sim supply: its output setter takes 0/1, its current 0..1 A."""
     base = {
         "visa_library": f"{SIM_YAML}@sim",
@@ -177,7 +177,7 @@ def test_rig_file_light_backends(tmp_path: Path) -> None:
 
 
 # -- in the runner: safe stop, reason recorded, resume -------------------------------------------
-def _scpi_session_config(s, resource: str, **kw):  # noqa: ANN001, ANN003, ANN202
+def _scpi_session_config(s, resource: str, **kw):
     light = s.config.light.model_copy(
         update={"backend": "scpi", "url": resource, "scpi": ScpiConfig(**kw)}
     )

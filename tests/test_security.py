@@ -367,8 +367,8 @@ def _no_nulls(d: dict) -> dict:
 
 def _evil_run(root: Path) -> Path:
     """A run, samples and two fits whose every free-text field carries BAD."""
+    from brdfdata.samples import SampleTable, write_samples
     from fitting.result import FitResult
-    from fitting.samples import SampleTable, write_samples
     from simulator.scene import load_scene
 
     scene = load_scene(REPO / "configs" / "scenes" / "demo.toml").model_dump(mode="json")

@@ -26,11 +26,11 @@ from acquisition.clock import VirtualClock
 from acquisition.config import PlanConfig, RigConfig, load_rig
 from acquisition.kinematics import Kinematics, Pose
 from acquisition.store import RunStore
+from brdfdata.samples import Flags
 from calibration.decode import decode_frame
 from calibration.geometry import Intrinsics, project_points
 from calibration.reduce import ReduceOptions, reduce_run
 from calibration.segmentation import iou, polygon_mask, segment_sample
-from fitting.samples import Flags
 from gonio.pipeline import AcquireSpec, acquire
 from simulator.camera import SimCamera
 from simulator.render import camera_intrinsics, world_to_camera_cv

@@ -244,7 +244,7 @@ def test_truth_bsdf_roughconductor_matches_published_microfacet_formula(distribu
 
 
 def test_roughconductor_eta_k_fresnel_at_normal_incidence():
-    # DESIGN §6: Au (η, k) → F0 = (0.9667, 0.8022, 0.3240). At ω_i = ω_o = +z: D = 1/(π α²),
+    # docs/design.md §6: Au (η, k) → F0 = (0.9667, 0.8022, 0.3240). At ω_i = ω_o = +z: D = 1/(π α²),
     # G = 1, so f = F0 / (4 π α²).
     alpha = 0.2
     au = RoughConductorMaterial(

@@ -17,9 +17,9 @@ import pytest
 
 from acquisition.config import PlanConfig
 from acquisition.operator import AutoOperator
+from brdfdata.samples import read_samples
 from calibration.reduce import ReduceOptions, reduce_run
 from calibration.texels import TexelGrid
-from fitting.samples import read_samples
 from gonio.pipeline import AcquireSpec, acquire
 from plumbing.errors import UserError
 from simulator.scene import load_scene

@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 from _texels import ProcessCluster, fit_options, texel_samples
 
-from gonio.cluster import dask_client, read_rows
 from gonio.errors import UserError
-from gonio.texel_jobs import TexelJob, run_texel_job
+from gonio.scaleout.cluster import dask_client, read_rows
+from gonio.scaleout.texels import TexelJob, run_texel_job
 from simulator.texture import texel_truth
 
 TEXELS = 5
@@ -207,8 +207,8 @@ def _library(folder: Path, kds: list[float], first: int = 0) -> list[Path]:
     BRDF with 1 % noise at the texel tests' poses."""
     from _texels import POSES_DEG
 
-    from fitting.directions import spherical_to_vector
-    from fitting.samples import write_samples
+    from brdfdata.directions import spherical_to_vector
+    from brdfdata.samples import write_samples
     from simulator.scene import BlendMaterial, DiffuseMaterial, RoughConductorMaterial
     from simulator.truth import direct_samples
 
@@ -231,7 +231,7 @@ def _library(folder: Path, kds: list[float], first: int = 0) -> list[Path]:
 
 
 def test_fit_batch_one_row_per_table_and_a_rerun_skips_finished_ones(cluster, tmp_path) -> None:
-    from gonio.batch_jobs import BatchJob, find_tables, run_batch_job
+    from gonio.scaleout.batch import BatchJob, find_tables, run_batch_job
 
     lib = tmp_path / "library"
     kds = [0.2, 0.4, 0.6]
@@ -261,7 +261,7 @@ def test_fit_batch_one_row_per_table_and_a_rerun_skips_finished_ones(cluster, tm
 
 
 def test_fit_texels_command_says_in_one_line_what_is_wrong(tmp_path, samples) -> None:
-    from fitting.samples import read_samples, write_samples
+    from brdfdata.samples import read_samples, write_samples
 
     plain = read_samples(samples[0])
     plain.extra.pop("texel")

@@ -14,8 +14,8 @@ import emcee
 import numpy as np
 import pytest
 
+from brdfdata.directions import grid_direction_pairs
 from fitting import models
-from fitting.directions import grid_direction_pairs
 from fitting.fit import FitOptions, fit_samples
 from fitting.mcmc import ConvergenceTarget, McmcResult, split_rhat
 from fitting.priors import ParameterSpec, PriorBound, PriorsConfig
@@ -129,9 +129,9 @@ def test_chi2_spread_thresholds() -> None:
 
 
 def test_regions_name_where_the_residuals_are_too_large() -> None:
-    from fitting.directions import uniform_hemisphere
+    from brdfdata.directions import uniform_hemisphere
+    from brdfdata.rusinkiewicz import to_half_diff
     from fitting.mismatch import region_index
-    from fitting.rusinkiewicz import to_half_diff
     from fitting.verdicts import regions_verdict
 
     rng = np.random.default_rng(0)
@@ -246,7 +246,7 @@ def test_energy_above_one_fails_and_below_passes() -> None:
     assert v["status"] == "fail" and "1.2" in v["reason"], v
     assert energy_verdict(lam, {"R": {"kd": 0.9}})["status"] == "ok"
     ts = models.get("torrance-sparrow", **TS_MITSUBA)
-    # kd + ks·(lobe albedo ≥ 0.92 for m = 0.3, DESIGN §6) = 0.3 + 0.9·0.92 > 1.1 somewhere.
+    # kd + ks·(lobe albedo ≥ 0.92 for m = 0.3, docs/design.md §6) = 0.3 + 0.9·0.92 > 1.1 somewhere.
     v = energy_verdict(ts, {"G": {"kd": 0.3, "ks": 0.9, "m": 0.3}})
     assert v["status"] == "fail" and "(G," in v["reason"]
     assert energy_verdict(ts, {"G": {"kd": 0.3, "ks": 0.5, "m": 0.3}})["status"] == "ok"
@@ -291,7 +291,7 @@ def test_gonio_fit_prints_verdicts_and_exits_3_on_a_fail(tmp_path) -> None:
     import subprocess
     import sys
 
-    from fitting.samples import Flags, write_samples
+    from brdfdata.samples import Flags, write_samples
 
     wi, wo = _grid()
     table, _ = direct_samples(BLEND, wi, wo, rel_sigma=0.02, floor_sr=1e-3, rng=5, channels="R")

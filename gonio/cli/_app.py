@@ -10,7 +10,16 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-__all__ = ["app", "out", "err"]
+__all__ = [
+    "app",
+    "out",
+    "err",
+    "kv_pairs",
+    "operator_for",
+    "scene_for",
+    "YES_OPTION",
+    "ANSWERS_OPTION",
+]
 
 app = typer.Typer(
     add_completion=False,
@@ -31,9 +40,9 @@ _DEBUG = {"on": False}
 
 def _version_cb(value: bool) -> None:
     if value:
-        from gonio.pipeline import _version
+        from gonio import version
 
-        out.print(f"gonio {_version()}")
+        out.print(f"gonio {version()}")
         raise typer.Exit()
 
 
@@ -47,15 +56,15 @@ def _root(
     _DEBUG["on"] = debug
 
 
-_YES = typer.Option("--yes", help="Operator steps are prepared: do not ask (unattended).")
+YES_OPTION = typer.Option("--yes", help="Operator steps are prepared: do not ask (unattended).")
 
 
-_ANSWERS = typer.Option(
+ANSWERS_OPTION = typer.Option(
     "--answers", help="TOML file answering the operator steps ([answers] STEP = yes|no)."
 )
 
 
-def _scene_option(path: Path | None):
+def scene_for(path: Path | None):
     """--scene for a simulated rig: the emulated world (None: the rig file's own scene)."""
     if path is None:
         return None
@@ -64,7 +73,7 @@ def _scene_option(path: Path | None):
     return load_scene(path)
 
 
-def _operator(yes: bool, answers: Path | None):
+def operator_for(yes: bool, answers: Path | None):
     """The operator for steps that need hands: --yes, an answers file, or the console."""
     from acquisition.operator import AutoOperator, ConsoleOperator, ScriptedOperator
     from gonio.errors import UserError
@@ -78,7 +87,7 @@ def _operator(yes: bool, answers: Path | None):
     return ConsoleOperator()
 
 
-def _kv(items: list[str], what: str) -> dict[str, str]:
+def kv_pairs(items: list[str], what: str) -> dict[str, str]:
     from gonio.errors import UserError
 
     result = {}

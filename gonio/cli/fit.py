@@ -9,7 +9,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from gonio.cli._app import _kv, app, out
+from gonio.cli._app import app, kv_pairs, out
 
 _BinOption = Annotated[
     float | None,
@@ -133,10 +133,10 @@ def fit(
     )
 
 
-def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):  # noqa: ANN202
+def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):
     """The samples table, binned (streamed) when asked or when it is large; one line says so."""
+    from brdfdata.samples import read_samples
     from fitting.binning import AUTO_BIN_DEG, AUTO_BIN_ROWS, BinOptions, read_binned, rows_in
-    from fitting.samples import read_samples
     from gonio.errors import UserError
 
     if bin_deg is not None and not bin_deg >= 0:  # negative or NaN
@@ -152,7 +152,7 @@ def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):
     return table
 
 
-def _run_fits(table, base, cands, flags, dest: Path) -> None:  # noqa: ANN001
+def _run_fits(table, base, cands, flags, dest: Path) -> None:
     """One fit (or a ranked comparison), each shown with its verdicts; exit 3 on a fail."""
     from fitting.compare import run_comparison
     from fitting.fit import fit_samples
@@ -181,7 +181,7 @@ def _run_fits(table, base, cands, flags, dest: Path) -> None:  # noqa: ANN001
     verdict_exit(results[ranked[0].label].verdicts, accept_poor_fit, ranked[0].label)
 
 
-def _check_spaces(table, cands, space_args, priors_path) -> None:  # noqa: ANN001
+def _check_spaces(table, cands, space_args, priors_path) -> None:
     """Build each candidate's parameter space before anything is printed or written, so a
     priors file, --fix or --shared that does not suit the model is the command's only line."""
     from fitting import models
@@ -210,11 +210,11 @@ def _check_spaces(table, cands, space_args, priors_path) -> None:  # noqa: ANN00
             raise UserError(f"{where}{line}") from None
 
 
-def _show_flag_counts(table, chans, drop_flagged: bool) -> None:  # noqa: ANN001
+def _show_flag_counts(table, chans, drop_flagged: bool) -> None:
     """One line: how many DARK and SATURATED samples the fitted channels hold, and their fate."""
     import numpy as np
 
-    from fitting.samples import Flags
+    from brdfdata.samples import Flags
 
     sel = np.isin(table.channel, chans) if chans else np.ones(len(table), bool)
     flags = np.asarray(table.flags, dtype=np.int64)[sel]
@@ -228,10 +228,10 @@ def _show_flag_counts(table, chans, drop_flagged: bool) -> None:  # noqa: ANN001
     out.print(f"flagged samples: {dark} DARK, {sat} SATURATED of {int(sel.sum())}; {fate}")
 
 
-def _checked_fit_args(model: str, fix, priors, cand_args, mcmc_args):  # noqa: ANN001
+def _checked_fit_args(model: str, fix, priors, cand_args, mcmc_args):
     """(model, fixed values, priors, candidates) from the fit command's options, each mistake
     one line (UserError)."""
-    from fitting import registry
+    from fitting import models
     from fitting.compare import candidates
     from fitting.likelihood import LIKELIHOOD_KINDS
     from fitting.priors import PriorsError, load_priors
@@ -241,29 +241,29 @@ def _checked_fit_args(model: str, fix, priors, cand_args, mcmc_args):  # noqa: A
     likelihood, walkers, steps = mcmc_args
     if model != "all":
         try:
-            model = registry.resolve(model)  # an alias (e.g. "ts") names its model
-        except registry.UnknownModelError as exc:
+            model = models.resolve(model)  # an alias (e.g. "ts") names its model
+        except models.UnknownModelError as exc:
             raise UserError(f"{exc}, all") from None
     if likelihood not in LIKELIHOOD_KINDS:
         raise UserError(f"--likelihood {likelihood!r}: use one of {', '.join(LIKELIHOOD_KINDS)}")
     if walkers < 2 or steps < 1:
         raise UserError("--walkers must be ≥ 2 and --steps ≥ 1")
     try:
-        fixed = {k: float(v) for k, v in _kv(fix, "--fix").items()}
+        fixed = {k: float(v) for k, v in kv_pairs(fix, "--fix").items()}
     except ValueError as exc:
         raise UserError(f"--fix: {exc}") from None
     shared_names = tuple(x.strip() for x in shared.split(",") if x.strip())
     try:
         prior_cfg = load_priors(priors) if priors is not None else None
         cands = candidates(
-            model, _kv(option, "--option"), shared_names, compare_shared=compare_shared
+            model, kv_pairs(option, "--option"), shared_names, compare_shared=compare_shared
         )
     except (PriorsError, TypeError, ValueError) as exc:
         raise UserError(str(exc).splitlines()[0]) from None
     return model, fixed, prior_cfg, cands
 
 
-def _show_fit(c, result, dest: Path) -> None:  # noqa: ANN001
+def _show_fit(c, result, dest: Path) -> None:
     """Export the material for Mitsuba and print the parameter table of one fit."""
     from fitting.export import export_material
 
@@ -285,7 +285,7 @@ def _show_fit(c, result, dest: Path) -> None:  # noqa: ANN001
 _STATUS_STYLE = {"ok": "green", "warning": "yellow", "fail": "bold red"}
 
 
-def show_verdicts(verdicts, title: str = "verdicts") -> None:  # noqa: ANN001
+def show_verdicts(verdicts, title: str = "verdicts") -> None:
     """The verdict table (fitting.verdicts): status word, reason, advice."""
     if not verdicts:
         return
@@ -299,7 +299,7 @@ def show_verdicts(verdicts, title: str = "verdicts") -> None:  # noqa: ANN001
     Console(width=max(out.width, 140)).print(t)
 
 
-def verdict_exit(verdicts, accept: bool, label: str | None = None) -> None:  # noqa: ANN001
+def verdict_exit(verdicts, accept: bool, label: str | None = None) -> None:
     """The last line, and exit 3 when a verdict failed (unless --accept-poor-fit)."""
     from fitting.verdicts import failed
 
@@ -318,7 +318,7 @@ def verdict_exit(verdicts, accept: bool, label: str | None = None) -> None:  # n
     raise typer.Exit(code=3)
 
 
-def _show_comparison(ranked, dest: Path) -> None:  # noqa: ANN001
+def _show_comparison(ranked, dest: Path) -> None:
     """The model-comparison table (best first) and its notes."""
 
     def num(x: float) -> str:
@@ -384,7 +384,7 @@ def report(
     out.print(str(write_report(run_dir)))
 
 
-# -- offline data: import, export, the data files (issue 16; logic in fitting.formats) -----------
+# -- offline data: import, export, the data files (issue 16; logic in brdfdata.formats) -----------
 @app.command(name="import")
 def import_cmd(
     fmt: Annotated[str, typer.Argument(metavar="FORMAT", help="rgl | merl | csv")],
@@ -414,8 +414,8 @@ def import_cmd(
 ) -> None:
     """Convert an RGL .bsdf, a MERL .binary or a delimited text table into a samples table
     (docs/formats.md), with the source file and its SHA-256 in the Parquet metadata."""
-    from fitting.formats.convert import ImportOptions, import_samples
-    from fitting.samples import write_samples
+    from brdfdata.formats.convert import ImportOptions, import_samples
+    from brdfdata.samples import write_samples
     from gonio.errors import UserError
 
     try:
@@ -428,8 +428,8 @@ def import_cmd(
         grid=grid,
         sigma=sigma,
         angles=angles,
-        columns=_kv(column, "--column"),
-        values=_kv(value, "--value"),
+        columns=kv_pairs(column, "--column"),
+        values=kv_pairs(value, "--value"),
         channel_column=channel_column,
         default_channel=channel,
         delimiter=delimiter,
@@ -454,9 +454,11 @@ def export_cmd(
     angles: Annotated[str, typer.Option(help="csv: angle unit, deg or rad.")] = "rad",
 ) -> None:
     """Write samples (or, for MERL, a fitted model) in another format: the twins of `import`."""
-    from fitting.formats.convert import export_file
+    from brdfdata.formats.convert import export_file
+    from fitting.export import export_fit
 
-    path, what = export_file(fmt, source, out_path, angles)
+    export = export_fit if source.suffix.lower() == ".json" else export_file
+    path, what = export(fmt, source, out_path, angles)
     out.print(f"{path}: {what}", soft_wrap=True)
 
 
@@ -469,7 +471,7 @@ app.add_typer(data_app, name="data")
 @data_app.command("list")
 def data_list() -> None:
     """Every known data file: where it is found and whether its SHA-256 matches."""
-    from fitting.data_paths import FETCHED, DataNotFound, manifest, verify
+    from brdfdata.data_paths import FETCHED, DataNotFound, manifest, verify
 
     t = Table(title="gonio data (search order: $GONIO_DATA, data/, share/gonio/data, cache)")
     for col in ("file", "shipped", "status", "path"):
@@ -492,7 +494,7 @@ def data_fetch(
     ] = None,
 ) -> None:
     """Download (or copy) a data group into the cache, checking every SHA-256."""
-    from fitting.data_paths import fetch
+    from brdfdata.data_paths import fetch
 
     for path in fetch(group, source):
         out.print(str(path))
@@ -512,15 +514,15 @@ def models_cmd(
 ) -> None:
     """List the BRDF models: parameters (units, bounds), options (allowed values, default *),
     aliases, declared properties, reference; --check measures the properties."""
-    from fitting import registry
+    from fitting import models
     from gonio.errors import UserError
 
-    opts = _kv(option, "--option")
+    opts = kv_pairs(option, "--option")
     if opts and name is None:
         raise UserError("--option needs a model NAME (gonio models NAME --option KEY=VALUE)")
     try:
-        names = [registry.resolve(name)] if name is not None else registry.names()
-        built = {n: registry.get(n, **opts) for n in names}
+        names = [models.resolve(name)] if name is not None else models.names()
+        built = {n: models.get(n, **opts) for n in names}
     except (KeyError, ValueError) as exc:
         raise UserError(str(exc).splitlines()[0]) from None
 
@@ -545,7 +547,7 @@ def models_cmd(
     for col in ("model", "options", "aliases", "properties", "needs", "reference"):
         ot.add_column(col, overflow="fold")
     for n, m in built.items():
-        e = registry.entry(n)
+        e = models.entry(n)
         lines = [o.describe() for o in e.options]
         if e.base is not None:
             fixed = ", ".join(f"{k}={v}" for k, v in e.fixed.items())
@@ -566,7 +568,7 @@ def models_cmd(
     wide.print(ot)
     if not check:
         return
-    from fitting.properties import property_table
+    from fitting.models.properties import property_table
 
     rows = property_table(names=names)
     pt = Table(title="Measured properties (quadrature and random direction pairs)")

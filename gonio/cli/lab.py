@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from gonio.cli._app import _ANSWERS, _YES, _operator, _scene_option, app, out
+from gonio.cli._app import ANSWERS_OPTION, YES_OPTION, app, operator_for, out, scene_for
 from gonio.plain_text import printable
 
 
@@ -52,8 +52,8 @@ def acquire(
     ] = ...,  # type: ignore[assignment]
     scene: Annotated[Path | None, typer.Option("--scene", help="Override the rig's scene.")] = None,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
-    yes: Annotated[bool, _YES] = False,
-    answers: Annotated[Path | None, _ANSWERS] = None,
+    yes: Annotated[bool, YES_OPTION] = False,
+    answers: Annotated[Path | None, ANSWERS_OPTION] = None,
 ) -> None:
     """Run a plan on a rig into OUT (its calibration phases first); resume OUT when it holds an
     incomplete run — with --rig again: the run's devices and commands must match that file."""
@@ -67,7 +67,7 @@ def acquire(
 
     try:
         spec = AcquireSpec(
-            rig=rig, plan=plan, scene=scene, progress=progress, operator=_operator(yes, answers)
+            rig=rig, plan=plan, scene=scene, progress=progress, operator=operator_for(yes, answers)
         )
         res = run_acquire(out_dir, spec)
     except Unreachable as exc:  # an explicit pose the rig cannot reach: name the plan file
@@ -227,8 +227,8 @@ def calibrate_rig_cmd(
     scene: Annotated[
         Path | None, typer.Option("--scene", help="Simulated rigs: the world.")
     ] = None,
-    yes: Annotated[bool, _YES] = False,
-    answers: Annotated[Path | None, _ANSWERS] = None,
+    yes: Annotated[bool, YES_OPTION] = False,
+    answers: Annotated[Path | None, ANSWERS_OPTION] = None,
 ) -> None:
     """Camera-arm zero offsets and sample-plane tilt from board views on the rig; point the rig
     file's calibration.arm_offsets at OUT and `gonio calibrate` uses them."""
@@ -240,9 +240,9 @@ def calibrate_rig_cmd(
 
     cfg = load_rig(rig)
     spec = parse_board(board)
-    scene_cfg = _scene_option(scene)
+    scene_cfg = scene_for(scene)
     world = prepare_backends(cfg, scene_cfg)
-    hands = _operator(yes, answers)
+    hands = operator_for(yes, answers)
     if world is not None:
         hands = world.hands(hands)
     rig_dev = build_rig(cfg)
@@ -267,8 +267,8 @@ def capture_cmd(
     scene: Annotated[
         Path | None, typer.Option("--scene", help="Simulated rigs: the world.")
     ] = None,
-    yes: Annotated[bool, _YES] = False,
-    answers: Annotated[Path | None, _ANSWERS] = None,
+    yes: Annotated[bool, YES_OPTION] = False,
+    answers: Annotated[Path | None, ANSWERS_OPTION] = None,
 ) -> None:
     """Retake one kind of calibration frames into RUN_DIR (a new take; earlier ones are kept,
     calibration uses the newest complete take)."""
@@ -277,7 +277,7 @@ def capture_cmd(
 
     check_run_path(run_dir)
     n = capture_calibration(
-        run_dir, kind, rig_path=rig, scene_path=scene, operator=_operator(yes, answers)
+        run_dir, kind, rig_path=rig, scene_path=scene, operator=operator_for(yes, answers)
     )
     out.print(f"{run_dir}: {n} {kind} frame(s) captured (new take)")
 
@@ -344,7 +344,7 @@ def rig_check(
     from gonio.rig_check import check_camera, check_light, check_rig, rig_check_report
 
     cfg = load_rig(rig)
-    scene_cfg = _scene_option(scene)
+    scene_cfg = scene_for(scene)
     prepare_backends(cfg, scene_cfg)
     try:
         rows = check_rig(cfg)

@@ -117,14 +117,15 @@ def _describe_plan(plan_path: Path, rig_path: Path | None, model: str | None) ->
     needs (all regions without --model) that the plan leaves empty or sparse."""
     from acquisition.config import load_plan, load_rig
     from acquisition.plans import build_plan, expand_grid, lab_time_estimate, plan_coverage
-    from fitting import coverage, registry
+    from brdfdata import coverage
+    from fitting import models
     from gonio.errors import UserError
     from gonio.pipeline import config_dir
 
     rig = load_rig(rig_path or config_dir() / "rigs" / "sim.toml")
     cfg = load_plan(plan_path)
     try:
-        needs = registry.entry(model).needs if model else coverage.REGIONS
+        needs = models.entry(model).needs if model else coverage.REGIONS
     except KeyError as exc:
         raise UserError(str(exc).strip("'\"")) from None
     plan = build_plan(rig, cfg)
@@ -135,7 +136,7 @@ def _describe_plan(plan_path: Path, rig_path: Path | None, model: str | None) ->
     )
     phase1 = [p.pose.deg() for p in plan.poses] if cfg.type != "adaptive" else expand_grid(cfg)
     rep = plan_coverage(phase1, needs)
-    who = f"{registry.resolve(model)} needs" if model else "all regions"
+    who = f"{models.resolve(model)} needs" if model else "all regions"
     out.print(f"coverage ({who}):", markup=False)
     for line in rep.lines():
         out.print(f"  {line}", markup=False)
@@ -288,7 +289,7 @@ def _budget_words(sizes: dict) -> str:
     )
 
 
-def _plan_on_realistic_rig(rows, param, rel, material, rig_cfg, stated, results) -> None:  # noqa: ANN001
+def _plan_on_realistic_rig(rows, param, rel, material, rig_cfg, stated, results) -> None:
     """`gonio plan --target` for a rig that states its shared errors: from the study's realistic
     rig, the cheapest plan whose 68 % half-width (its statistical part ⊕ the systematic part
     for this rig: the shared scale swapped for the rig's own, gonio.studies.accuracy_analysis.

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from gonio.cli._app import _kv, app, out
+from gonio.cli._app import app, kv_pairs, out
 
 _SCHEDULER = typer.Option(
     "--scheduler",
@@ -21,22 +21,22 @@ _OPTION = typer.Option("--option", help="Model option KEY=VALUE.")
 
 def _fit_options(model: str, option: list[str], shared: str, knobs: tuple[int, int, int, bool]):
     """FitOptions for a per-texel or per-table fit; mistakes are one-line UserErrors."""
-    from fitting import registry
+    from fitting import models
     from fitting.fit import FitOptions
     from fitting.texels import texel_fit_options
     from gonio.errors import UserError
 
     walkers, steps, seed, discrepancy = knobs
     try:
-        model = registry.resolve(model)
-    except registry.UnknownModelError as exc:
+        model = models.resolve(model)
+    except models.UnknownModelError as exc:
         raise UserError(str(exc)) from None
     if walkers < 2 or steps < 1:
         raise UserError("--walkers must be ≥ 2 and --steps ≥ 1")
     shared_names = tuple(x.strip() for x in shared.split(",") if x.strip())
     base = FitOptions(
         model=model,
-        model_options=_kv(option, "--option"),
+        model_options=kv_pairs(option, "--option"),
         shared=shared_names,
         seed=seed,
         discrepancy=discrepancy,
@@ -70,10 +70,10 @@ def fit_texels_cmd(
     """Fit every texel of SAMPLES (least squares, then MCMC) as Dask tasks: writes
     OUT/texels.parquet (one row per texel), OUT/maps/ (PNG previews, EXR textures, a Mitsuba
     material) and OUT/chunks/ (finished tasks; a rerun fits only what is missing)."""
-    from fitting.samples import read_samples
+    from brdfdata.samples import read_samples
     from fitting.texels import texel_groups
-    from gonio.cluster import dask_client
-    from gonio.texel_jobs import TexelJob, run_texel_job
+    from gonio.scaleout.cluster import dask_client
+    from gonio.scaleout.texels import TexelJob, run_texel_job
 
     options = _fit_options(model, option, shared, (walkers, steps, seed, discrepancy))
     texel_groups(read_samples(samples))  # a missing file or texel column: one line, no cluster
@@ -107,8 +107,8 @@ def fit_batch_cmd(
 ) -> None:
     """Fit many samples tables (a material library) as Dask tasks, one summary row per table in
     OUT/batch.parquet; finished tables are kept in OUT/tables/ and skipped on a rerun."""
-    from gonio.batch_jobs import BatchJob, find_tables, run_batch_job
-    from gonio.cluster import dask_client
+    from gonio.scaleout.batch import BatchJob, find_tables, run_batch_job
+    from gonio.scaleout.cluster import dask_client
 
     options = _fit_options(model, option, shared, (walkers, steps, seed, discrepancy))
     job = BatchJob(find_tables(tables), out_dir, options)

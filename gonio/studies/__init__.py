@@ -38,7 +38,7 @@ emcee, with the fitted fractional model-discrepancy term on):
   Parameterization for Efficient Material Acquisition and Rendering", ACM TOG 37(6)): white
   paper, a matte red wall paint, a satin vinyl film, a metallic gold vinyl film — rendered by
   Mitsuba's ``measured`` plugin from the published tensors (data/rgl_brdf, found through
-  fitting.data_paths);
+  brdfdata.data_paths);
 - two MERL materials as Ngan, Durand & Matusik fitted them ("Experimental Analysis of BRDF
   Models", EGSR 2005): nickel (a sharp metal lobe) and teflon (Cook-Torrance, configs/scenes).
 
@@ -46,7 +46,7 @@ Each fit is judged against the truth — Mitsuba's own BSDF (`Renderer.truth_bsd
 ``bsdf.eval/cos θ_i``) — on a dense grid of *held-out* directions that the plan never measured
 (:func:`heldout_grid`), with two metrics (:func:`heldout_errors`):
 
-- Ngan et al.'s cosine-weighted L2 (DESIGN §6): plain L2 on f·cos θ_i weighted by
+- Ngan et al.'s cosine-weighted L2 (docs/design.md §6): plain L2 on f·cos θ_i weighted by
   sin θ_i sin θ_o, here as a mean over the grid (which makes it an RMS per unit solid angle on
   a regular (θ_i, θ_o, Δφ) grid), in sr⁻¹:
       E_Ngan = √( Σ_j w_j ((f̂_j − f_j) cos θ_i,j)² / Σ_j w_j ),   w_j = sin θ_i,j sin θ_o,j;

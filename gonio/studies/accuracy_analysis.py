@@ -265,7 +265,7 @@ def pick_plan(
 _AMPLITUDE_PREFIXES = ("kd", "ks")
 
 
-def shared_scale_floor(rig, param: str) -> tuple[float, str] | None:  # noqa: ANN001 - RigConfig
+def shared_scale_floor(rig, param: str) -> tuple[float, str] | None:  # RigConfig
     """The relative error no plan can go below on `param` because of the rig's shared scale
     (`shared_scale_sigma`: its reference target's certificate, or the lamp's certificate and
     distance when there is no target), and where that number comes from; None for a shape
@@ -296,7 +296,7 @@ def systematic_floor(rows: list[dict[str, Any]], param: str) -> dict[str, Any] |
     return {"floor": top["rel_sys_68"], "plan": top}
 
 
-def stated_budget(rig) -> dict[str, float]:  # noqa: ANN001 - RigConfig
+def stated_budget(rig) -> dict[str, float]:  # RigConfig
     """The shared-error sizes (k = 1) a rig file states, under the names of the study's
     instrument budget (simulator.instrument_draws.InstrumentBudget): the lamp's or the reference
     target's certificate, the lamp distance, the largest encoder-zero σ, the sample tilt, the
@@ -321,7 +321,7 @@ def stated_budget(rig) -> dict[str, float]:  # noqa: ANN001 - RigConfig
     return out
 
 
-def shared_scale_sigma(rig=None, budget: dict | None = None) -> float | None:  # noqa: ANN001
+def shared_scale_sigma(rig=None, budget: dict | None = None) -> float | None:
     """The shared radiometric scale's relative σ: of a rig file (its reference target's
     certificate, which absorbs the lamp's intensity and distance, both measured the same way;
     else the lamp's certificate ⊕ 2σ_r/r, E ∝ 1/r²), or of the study's instrument budget (the

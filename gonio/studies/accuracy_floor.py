@@ -107,7 +107,7 @@ def realistic_section(
     return lines
 
 
-def _floor_findings(rows, real, ideal) -> list[str]:  # noqa: ANN001 - the section's summaries
+def _floor_findings(rows, real, ideal) -> list[str]:  # the section's summaries
     out = []
     for p in _PARAMS:
         if not real[p]:
@@ -145,7 +145,7 @@ def _floor_findings(rows, real, ideal) -> list[str]:  # noqa: ANN001 - the secti
     return out
 
 
-def _coverage_words(real) -> str:  # noqa: ANN001 - per parameter, the realistic summaries
+def _coverage_words(real) -> str:  # per parameter, the realistic summaries
     """Coverage pooled over the realistic plans, with the plain word where the 95 % intervals
     held the truth less often than a binomial allows (more than 2 sd below 0.95)."""
     parts, short = [], []

@@ -32,7 +32,7 @@ __all__ = [
 ]
 
 
-def sim_rig():  # noqa: ANN201 - acquisition.config.RigConfig
+def sim_rig():  # acquisition.config.RigConfig
     """The simulated two-arm rig every study runs on (configs/rigs/sim.toml)."""
     from acquisition.config import load_rig
     from gonio.pipeline import config_dir
@@ -151,7 +151,7 @@ def load_average() -> str:
     return f"load average {one:.1f} / {five:.1f} / {fifteen:.1f} on {os.cpu_count()} cores"
 
 
-def pyplot():  # noqa: ANN201 - matplotlib.pyplot
+def pyplot():  # matplotlib.pyplot
     import matplotlib
 
     matplotlib.use("Agg")
@@ -160,7 +160,7 @@ def pyplot():  # noqa: ANN201 - matplotlib.pyplot
     return plt
 
 
-def plain_log_ticks(ax) -> None:  # noqa: ANN001
+def plain_log_ticks(ax) -> None:
     """Tick labels on a log y axis as plain numbers (0.02, not 2×10⁻²): the axis is in %."""
     from matplotlib.ticker import FuncFormatter, LogLocator
 
@@ -169,7 +169,7 @@ def plain_log_ticks(ax) -> None:  # noqa: ANN001
     ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
 
 
-def save_png(fig, path: Path) -> Path:  # noqa: ANN001
+def save_png(fig, path: Path) -> Path:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     atomic_write_bytes(path, buf.getvalue(), overwrite=True)

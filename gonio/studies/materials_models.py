@@ -22,9 +22,9 @@ class ModelSpec:
 
 def _variant(name: str) -> dict[str, str]:
     """The options of a named variant, as the model registry holds them (registered once)."""
-    from fitting import registry
+    from fitting import models
 
-    return dict(registry.entry(name).fixed)
+    return dict(models.entry(name).fixed)
 
 
 MODELS: tuple[ModelSpec, ...] = (
@@ -93,9 +93,9 @@ MODELS: tuple[ModelSpec, ...] = (
         ("m", "m_ratio", "ior"),
         "two GGX lobes, sharp + broad, Smith G, dielectric F (η fitted)",
     ),
-    # The ABC lobe (fitting.abc) with p = 3: selected on the gold film's own least-squares fit
-    # (Löw et al.'s p = 2 left 38–51 % there), so its gain on the gold film is partly a choice
-    # made on that material — the page says so.
+    # The ABC lobe (fitting.models.abc_lobe) with p = 3: selected on the gold film's own
+    # least-squares fit (Löw et al.'s p = 2 left 38–51 % there), so its gain on the gold film is
+    # partly a choice made on that material — the page says so.
     ModelSpec(
         "abc-p3",
         "abc",

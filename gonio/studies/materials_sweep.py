@@ -54,7 +54,7 @@ ESS_MIN = ConvergenceTarget().ess_min
 @dataclass(frozen=True)
 class MaterialSpec:
     """One material: ``key`` (file names), a readable label, its scene file in configs/scenes,
-    and for RGL materials the tensor file it needs from data/rgl_brdf (fitting.data_paths)."""
+    and for RGL materials the tensor file it needs from data/rgl_brdf (brdfdata.data_paths)."""
 
     key: str
     label: str
@@ -206,9 +206,9 @@ PARAM_COLUMNS = ["material", "model", "param", "unit", "map", "median", "p16", "
 
 # -- real data --------------------------------------------------------------------------------
 def _load_material_scene(spec: MaterialSpec, seed: int):
-    """The shipped scene (its ``data:`` tensor path resolved by fitting.data_paths, a one-line
+    """The shipped scene (its ``data:`` tensor path resolved by brdfdata.data_paths, a one-line
     error naming every place looked when it is missing), the sensor seed offset by ``seed``."""
-    from fitting.data_paths import find_data
+    from brdfdata.data_paths import find_data
     from gonio.backends import load_scene
     from gonio.pipeline import config_dir
 
@@ -260,7 +260,7 @@ def _in_plane_slice(table, theta_i_deg: float, channel: str, tol_deg: float = SL
 
 def _slice_directions(theta_i_deg: float, n: int = 361) -> tuple[np.ndarray, ...]:
     """In-plane curve: signed θ_o from −88° to 88° (positive = specular side, Δφ = 180°)."""
-    from fitting.directions import spherical_to_vector
+    from brdfdata.directions import spherical_to_vector
 
     s = np.linspace(-88.0, 88.0, n)
     to = np.radians(np.abs(s))
@@ -333,7 +333,7 @@ def run_sweep(
     return out[0], out[1], out[2], record
 
 
-def _material(key: str, scene, cfg: RealMaterialsConfig, root: Path, step, bar):  # noqa: ANN001
+def _material(key: str, scene, cfg: RealMaterialsConfig, root: Path, step, bar):
     """One material: acquire and calibrate, then every model's fit, score and slices."""
     from calibration.reduce import ReduceOptions
     from fitting.compare import rank
@@ -416,7 +416,7 @@ class _Scoring:
     poses: int
 
 
-def _fit_model(ctx: _Scoring, ms: ModelSpec, fit_table):  # noqa: ANN001
+def _fit_model(ctx: _Scoring, ms: ModelSpec, fit_table):
     """Fit one model (MCMC run on until R̂ and ESS meet the study's target), score it on the
     held-out grid, at its MAP and at its least-squares optimum: (row, LOO score, fit)."""
     from fitting.compare import score_fit
@@ -477,7 +477,7 @@ def _fit_model(ctx: _Scoring, ms: ModelSpec, fit_table):  # noqa: ANN001
     return row, score, fit
 
 
-def _param_rows(key: str, label: str, fit) -> list[dict[str, Any]]:  # noqa: ANN001
+def _param_rows(key: str, label: str, fit) -> list[dict[str, Any]]:
     d = fit.diagnostics
     return [
         {

@@ -12,7 +12,7 @@ from simulator.dxl.faults import FaultInjector, Reply, ReplyFaults
 from simulator.dxl.registry import get_bus, register_bus, unregister_bus
 from simulator.dxl.servo import Servo
 from simulator.dxl.transport import PtyTransport
-from simulator.urlhandler import install
+from simulator.serial_urls import install
 
 __all__ = [
     "ALERT_BITS",

@@ -29,7 +29,7 @@ def watchdog(seconds: float = HANG_S) -> Iterator[None]:
     """Raise Hang if the block does not return within `seconds` (SIGALRM; the SDK polls in
     Python, so the signal lands)."""
 
-    def fire(signum, frame):  # noqa: ANN001 - signal handler signature
+    def fire(signum, frame):
         raise Hang(f"no return within {seconds} s")
 
     # pytest-timeout arms the same timer (SIGALRM); hand it back with its time left.
