@@ -39,7 +39,7 @@ llvm:
 # arv-fake-gv-camera-0.8 GigE Vision simulator the tests start on 127.0.0.1), plus the headers
 # PyGObject builds against. Installed as root like libllvm19. Where that is impossible the
 # reason goes to $(VENV)/.aravis-unavailable: then, and only then, the Aravis tests skip
-# (tests/_aravis.py); otherwise a missing library is a test failure.
+# (tests/support/aravis.py); otherwise a missing library is a test failure.
 ARAVIS_DEBS := aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev
 ARAVIS_MARK := $(VENV)/.aravis-unavailable
 have_aravis_debs = command -v arv-fake-gv-camera-0.8 >/dev/null && \
@@ -76,7 +76,7 @@ aravis: $(STAMP) aravis-debs
 	  fi; \
 	fi
 
-# Headless Chromium checks that report.html renders (tests/_browser.py): no console error, every
+# Headless Chromium checks that report.html renders (tests/support/browser.py): no console error, every
 # image decoded, a screenshot kept. Installed as root like the others; where that is impossible
 # the reason goes to $(CHROMIUM_MARK) and then, and only then, the browser tests skip.
 CHROMIUM_MARK := $(VENV)/.chromium-unavailable

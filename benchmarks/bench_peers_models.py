@@ -388,9 +388,9 @@ def _settle() -> None:
 # lobes, XLA flushing denormals to 0), hence an absolute floor of 1e-14 × the largest |f|.
 _JAX_RTOL = 1e-12
 _JAX_ATOL_OF_MAX = 1e-14
-# Mitsuba vs gonio on the same float32-rounded inputs: Mitsuba's float32 arithmetic (a few ulps
-# of 6e-8, times the condition number of exp(−tan²θ_h/m²) up to its D cut-off) bounds the
-# difference: ≲ 1e-5 worst case, ~1e-7 typical — tests/test_models_vs_mitsuba.py's median ≤ 1e-5,
+# Mitsuba vs gonio on the same float32-rounded inputs: Mitsuba's float32 arithmetic (a few ulps of
+# 6e-8, times the condition number of exp(−tan²θ_h/m²) up to its D cut-off) bounds the difference: ≲
+# 1e-5 worst case, ~1e-7 typical — tests/fitting/models/test_models_vs_mitsuba.py's median ≤ 1e-5,
 # max ≤ 1e-3 relative where Mitsuba is > 0, and f·cos θ_o < 1e-15 where Mitsuba cut D off.
 _MI_MEDIAN, _MI_MAX, _MI_CUTOFF = 1e-5, 1e-3, 1e-15
 

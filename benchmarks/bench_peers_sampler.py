@@ -8,13 +8,13 @@ One run, two posteriors, ESS per second of each sampler and the gonio/NUTS ratio
   ln m, ior, ln s).
 * **sharp** — the same model at a near-mirror roughness m = 0.02 (:func:`sharp_table`). Uniform
   directions would almost never land in a lobe 2m ≈ 2.3° wide, so the table is built the way
-  tests/test_models_vs_mitsuba.py's ``direction_pairs`` covers a narrow lobe: per channel 40 %
-  of the rows are mirror pairs about a half vector whose slope is drawn from the Beckmann
-  distribution of width m (tan θ_h = m √(−ln u): the lobe's core), 20 % with width 2m (its
+  tests/fitting/models/test_models_vs_mitsuba.py's ``direction_pairs`` covers a narrow lobe: per
+  channel 40 % of the rows are mirror pairs about a half vector whose slope is drawn from the
+  Beckmann distribution of width m (tan θ_h = m √(−ln u): the lobe's core), 20 % with width 2m (its
   shoulders, where D falls to e⁻⁴…e⁻¹⁶ of the peak and the width is best measured) and 40 % are
-  bench_mcmc's wide pairs (the diffuse part and the empty far field). Light at φ = 0,
-  θ_i, θ_o ∈ [0.05, 1.3] rad as in synthetic_table (lobe pairs outside are redrawn), noise
-  σ = 3 % f + 10⁻³ as there.
+  bench_mcmc's wide pairs (the diffuse part and the empty far field). Light at φ = 0, θ_i, θ_o ∈
+  [0.05, 1.3] rad as in synthetic_table (lobe pairs outside are redrawn), noise σ = 3 % f + 10⁻³ as
+  there.
 
 The posterior (fitting.likelihood, fitting.priors): θ in gonio's sampled coordinates (log of the log
 parameters), flat on the prior box, −∞ outside; ln L = Σ −½[(f − f̂)²/v + ln 2πv] with v = σ² + (s

@@ -2,7 +2,7 @@
 and 2 local workers, scheduler overhead per task, memory per worker, and a projection to 64
 workers from the measured task times.
 
-Samples: Mitsuba's textured BSDF with Poisson noise at 36 poses per texel (tests/_texels.py,
+Samples: Mitsuba's textured BSDF with Poisson noise at 36 poses per texel (tests/support/texels.py,
 the same as the tests). Throughput is measured after a warm-up job on the same cluster (each
 worker pays numba's cache load and the imports once: that start-up is reported apart).
 Scheduler overhead: the wall time per task of 400 no-op tasks on one worker (submit, schedule,
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO))  # tests.support.texels
 
 __all__ = ["main"]
 
@@ -40,10 +40,9 @@ def _rss_mb() -> float:
 
 
 def _throughput(samples: Path, workers: int, steps: int, chunk: int, base: Path) -> dict:
-    from _texels import fit_options, texel_samples
-
     from gonio.scaleout.cluster import dask_client, read_rows
     from gonio.scaleout.texels import TexelJob, run_texel_job
+    from tests.support.texels import fit_options, texel_samples
 
     t0 = time.perf_counter()
     with dask_client(None, workers) as client:
@@ -75,11 +74,10 @@ def _throughput(samples: Path, workers: int, steps: int, chunk: int, base: Path)
 
 
 def _recovery(samples: Path, material, steps: int, base: Path) -> dict:
-    from _texels import fit_options
-
     from gonio.scaleout.cluster import dask_client, read_rows
     from gonio.scaleout.texels import TexelJob, run_texel_job
     from simulator.texture import texel_truth
+    from tests.support.texels import fit_options
 
     job = TexelJob(samples, base / "recovery", fit_options(steps), chunk_texels=16)
     with dask_client(None, 2) as client:
@@ -115,11 +113,11 @@ def projection(cpu_s_per_texel: float, overhead_s: float, chunk: int, workers: i
 
 
 def main() -> None:
-    from _texels import texel_samples
+    from tests.support.texels import texel_samples
 
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--texels", type=int, default=32)
-    # 300 steps: the tests' chains (tests/test_texels.py); 200 gave 87.8 % coverage on 6 × 6.
+    # 300 steps: the tests' chains (tests/gonio/test_texels.py); 200 gave 87.8 % coverage on 6 × 6.
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--chunk", type=int, default=16)
     ap.add_argument("--skip-recovery", action="store_true")

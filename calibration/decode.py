@@ -26,6 +26,7 @@ import logging
 import os
 import sys
 import tempfile
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -115,32 +116,77 @@ def demosaic_to_rgb(mosaic: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
     return np.stack([sites["R"][0], 0.5 * (sites["G"][0] + sites["G"][1]), sites["B"][0]], axis=-1)
 
 
-@contextmanager
-def _native_stderr(collected: list[str]) -> Iterator[None]:
-    """Redirect file descriptor 2 (where C libraries write) to a temp file for the duration;
-    its text is appended to ``collected``. Without a usable fd 2 nothing is redirected."""
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):
-        yield
-        return
-    quiet = logging.getLogger("tifffile")
-    was_disabled, quiet.disabled = quiet.disabled, True
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
-        try:
-            yield
-        finally:
+class _NativeStderr:
+    """File descriptor 2 redirected to one temp file while any decode runs, in any thread.
+
+    fd 2 belongs to the whole process, and the frames are decoded on background threads
+    (plumbing.prefetch): two decodes each saving and restoring fd 2 on their own could restore
+    it in the wrong order and leave it pointing at a deleted temp file, so that every later line
+    on stderr — the command's one-line error included — vanished (seen: `gonio calibrate` exit 2
+    with an empty stderr). So the first decode to enter redirects, the last to leave restores,
+    under one lock; each decode reads what was written while it ran (a message another thread's
+    decode wrote meanwhile may come with it: C libraries rarely say anything)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._depth = 0
+        self._saved: int | None = None
+        self._file = None
+        self._tifffile_was_disabled = False
+
+    def enter(self) -> int | None:
+        """Redirect (if first); returns the offset this decode's text starts at, None when
+        there is no usable fd 2."""
+        with self._lock:
+            if self._depth == 0:
+                try:
+                    sys.stderr.flush()
+                    saved = os.dup(2)
+                except (OSError, ValueError):
+                    return None
+                self._file = tempfile.TemporaryFile()
+                os.dup2(self._file.fileno(), 2)
+                self._saved = saved
+                # tifffile logs its complaints (Python's logging, not fd 2): quiet too
+                quiet = logging.getLogger("tifffile")
+                self._tifffile_was_disabled, quiet.disabled = quiet.disabled, True
+            self._depth += 1
+            return os.fstat(self._file.fileno()).st_size
+
+    def leave(self, start: int) -> str:
+        """Restore (if last); returns the text written since ``start``."""
+        with self._lock:
             try:
                 sys.stderr.flush()
             except (OSError, ValueError):
                 pass
-            os.dup2(saved, 2)
-            os.close(saved)
-            quiet.disabled = was_disabled
-            tmp.seek(0)
-            collected.append(tmp.read().decode("utf-8", "replace"))
+            text = os.pread(self._file.fileno(), 1 << 20, start).decode("utf-8", "replace")
+            self._depth -= 1
+            if self._depth == 0:
+                os.dup2(self._saved, 2)
+                os.close(self._saved)
+                self._file.close()
+                self._saved = self._file = None
+                logging.getLogger("tifffile").disabled = self._tifffile_was_disabled
+            return text
+
+
+_NATIVE_STDERR = _NativeStderr()
+
+
+@contextmanager
+def _native_stderr(collected: list[str]) -> Iterator[None]:
+    """Redirect file descriptor 2 (where C libraries write) for the duration (shared with the
+    other threads' decodes, _NativeStderr); its text is appended to ``collected``. Without a
+    usable fd 2 nothing is redirected."""
+    start = _NATIVE_STDERR.enter()
+    if start is None:
+        yield
+        return
+    try:
+        yield
+    finally:
+        collected.append(_NATIVE_STDERR.leave(start))
 
 
 def _first_line(collected: list[str]) -> str:

@@ -8,7 +8,7 @@ for the Ïƒ of the mean, by the caller), its directions the mean of the pixels' Ï
 caller normalises them), and its flags whether any pixel was saturated in every bracket or off
 the segmented sample. `region_means` computes all of these for the on-sample regions only, one
 pass over their pixels, summing each region's pixels row by row as the whole-plane numpy block
-means it replaced did (the same values, bit for bit: tests/test_regions.py).
+means it replaced did (the same values, bit for bit: tests/calibration/test_regions.py).
 """
 
 from __future__ import annotations

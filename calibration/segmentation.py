@@ -88,7 +88,8 @@ def _inside_convex(pts, inside):
 @numba.njit(cache=True, nogil=True)
 def _bilinear(img, u, v):
     """`img` at (u, v) = (column, row), bilinear, the edge values beyond the image (as
-    scipy.ndimage.map_coordinates(order=1, mode="nearest"): tests/test_segmentation.py)."""
+    scipy.ndimage.map_coordinates(order=1, mode="nearest"): tests/calibration/test_segmentation.py).
+    """
     h, w = img.shape
     u0, v0 = np.floor(u), np.floor(v)
     fu, fv = u - u0, v - v0

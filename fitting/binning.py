@@ -15,16 +15,16 @@ Gaussian likelihood, loses almost nothing:
   δ / sin θ_band, so every cell spans about δ × δ of arc, near the pole as at grazing. Rows
   flagged masked or below the horizon never enter a fit and are counted, not binned.
 * Exact rows of a bin become one sample: f̄ = Σ w f / Σ w, σ̄ = (Σ w)^(−1/2), w = 1/σ², at the
-  w-weighted mean direction (re-normalised). For a Gaussian likelihood of data at one geometry
-  this carries exactly the group's information (the duplicate merge of brdfdata.samples.guards);
-  across a bin the model is linear to first order around the mean direction, so the one error
-  is the model's curvature over the bin: ε_b = Σw f̂(ω_j)/Σw − f̂(ω̄_b) ≈ ½ tr(H Σ_b), with Σ_b
-  the within-bin direction spread. A parameter estimate moves by at most ‖ε/σ̄‖₂ posterior
-  standard deviations (Cauchy–Schwarz on the linearised normal equations). A fit of a binned
-  file (fitting.fit) therefore measures ε with the model at its least-squares optimum (a second
-  streamed pass, :func:`binning_bias`), subtracts it from each bin's mean, refits, and states
-  what is left as its ``binning`` verdict; tests/test_binning.py checks the predicted shift and
-  the corrected optimum against unbinned fits of Mitsuba data.
+  w-weighted mean direction (re-normalised). For a Gaussian likelihood of data at one geometry this
+  carries exactly the group's information (the duplicate merge of brdfdata.samples.guards); across a
+  bin the model is linear to first order around the mean direction, so the one error is the model's
+  curvature over the bin: ε_b = Σw f̂(ω_j)/Σw − f̂(ω̄_b) ≈ ½ tr(H Σ_b), with Σ_b the within-bin
+  direction spread. A parameter estimate moves by at most ‖ε/σ̄‖₂ posterior standard deviations
+  (Cauchy–Schwarz on the linearised normal equations). A fit of a binned file (fitting.fit)
+  therefore measures ε with the model at its least-squares optimum (a second streamed pass,
+  :func:`binning_bias`), subtracts it from each bin's mean, refits, and states what is left as its
+  ``binning`` verdict; tests/fitting/test_binning.py checks the predicted shift and the corrected
+  optimum against unbinned fits of Mitsuba data.
 * Censored rows of a bin (saturated: bound = the reading; dark: bound = max(f, k·σ), the
   detection limit of fitting.likelihood) become one row at the mean bound and the r.m.s. σ,
   carrying their count in column ``n_rows``: the likelihood weights its censored term by it.

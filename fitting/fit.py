@@ -629,7 +629,7 @@ def _binning_diagnostics(table, lik, x_map, source, eps_corrected) -> dict:
     any estimate and the linearised shift of each parameter, Δx = (JᵀJ)⁻¹Jᵀ(ε/σ̄) with J the
     whitened model Jacobian over the exact bins (finite differences), in posterior sds; and
     the same for the uncorrected bins (``uncorrected_*``, what the correction removed)
-    (tests/test_binning.py checks both against refits)."""
+    (tests/fitting/test_binning.py checks both against refits)."""
     from fitting.binning import binning_bias
 
     info = {k: v for k, v in json.loads(table.metadata["gonio.binned"]).items() if k != "channels"}

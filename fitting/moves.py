@@ -1,10 +1,10 @@
 """The emcee move sets a fit may use, by name (``MOVES``), and a correct DE snooker update.
 
-Why our own snooker: emcee 3.1.6's ``DESnookerMove`` normalises the line direction by √‖δ‖
-instead of ‖δ‖ and halves the Jacobian term, so it does not leave the target invariant: in a
-9-D Gaussian the 0.8 DE + 0.2 snooker mix sampled standard deviations about 6 % too small
-(issue 23), i.e. every credible interval of a fit was too narrow. ``SnookerMove`` below is the
-update as published; tests/test_moves.py checks every move set on a known correlated Gaussian.
+Why our own snooker: emcee 3.1.6's ``DESnookerMove`` normalises the line direction by √‖δ‖ instead
+of ‖δ‖ and halves the Jacobian term, so it does not leave the target invariant: in a 9-D Gaussian
+the 0.8 DE + 0.2 snooker mix sampled standard deviations about 6 % too small (issue 23), i.e. every
+credible interval of a fit was too narrow. ``SnookerMove`` below is the update as published;
+tests/fitting/test_moves.py checks every move set on a known correlated Gaussian.
 """
 
 from __future__ import annotations

@@ -45,22 +45,22 @@ def _prefer_512_bit_vectors() -> None:
 
 _prefer_512_bit_vectors()
 
-# No fast-math flag at all. "contract" (fused multiply-adds) measured 14–28 % faster, but LLVM
-# fuses differently in the serial and the parallel twin of a kernel (each is compiled on its own),
-# so their results differed in the last bit (a fresh-clone run of
-# tests/test_models.py::test_large_problem_uses_parallel_kernels_identically) and the "auto"
-# threading policy would make a seeded fit depend on the machine's load. Without it both twins
-# round every operation as IEEE says, whatever the vector width, so they agree bit for bit.
+# No fast-math flag at all. "contract" (fused multiply-adds) measured 14–28 % faster, but LLVM fuses
+# differently in the serial and the parallel twin of a kernel (each is compiled on its own), so
+# their results differed in the last bit (a fresh-clone run of
+# tests/fitting/models/test_models.py::test_large_problem_uses_parallel_kernels_identically) and the
+# "auto" threading policy would make a seeded fit depend on the machine's load. Without it both
+# twins round every operation as IEEE says, whatever the vector width, so they agree bit for bit.
 # Flags that assume finite values (nnan, ninf) would also break the kernels' inf/NaN guards.
 # error_model="numpy": a float division by zero gives ±inf/NaN as IEEE says instead of numba's
 # default Python-style check, whose raise path keeps LLVM from vectorising any loop that divides
-# (the kernels guard their divisions themselves).
-# nogil: a kernel releases the GIL while it runs, so a thread beside it (the calibration's frame
-# decoder, calibration.reduce) keeps working: held, a 24 MP RAW's decode took 24× its time.
-# numba's on-disk cache is keyed by a kernel's source, not by these options: after changing them,
-# edit every module that imports this njit (or clear its __pycache__), or their old builds load
-# with the new flags reported (a fresh checkout has no cache; tests/test_kernels_release_the_gil.py
-# checks the flags only: a timing check would flake on a loaded machine).
+# (the kernels guard their divisions themselves). nogil: a kernel releases the GIL while it runs, so
+# a thread beside it (the calibration's frame decoder, calibration.reduce) keeps working: held, a 24
+# MP RAW's decode took 24× its time. numba's on-disk cache is keyed by a kernel's source, not by
+# these options: after changing them, edit every module that imports this njit (or clear its
+# __pycache__), or their old builds load with the new flags reported (a fresh checkout has no cache;
+# tests/house/test_kernels_release_the_gil.py checks the flags only: a timing check would flake on a
+# loaded machine).
 njit = functools.partial(numba.njit, fastmath=False, error_model="numpy", nogil=True)
 
 

@@ -18,10 +18,10 @@ Pixel sampling: a ``stratified`` sampler with ``jitter=False``. At spp = 1 every
 exactly through its centre (so the per-pixel geometry in ``pixel_rays`` is exact); at spp = n² the
 pixel is integrated with the n×n midpoint rule over its area.
 
-Camera model (verified by tests/test_sim_render.py): an ideal pinhole, no distortion, square
-pixels, horizontal field of view ``scene.camera.fov_deg`` spanning the full image width, principal
-point at the image centre. In OpenCV convention (pixel centres at integer coordinates, x to the
-right, y down, z forward):
+Camera model (verified by tests/simulator/test_sim_render.py): an ideal pinhole, no distortion,
+square pixels, horizontal field of view ``scene.camera.fov_deg`` spanning the full image width,
+principal point at the image centre. In OpenCV convention (pixel centres at integer coordinates, x
+to the right, y down, z forward):
     fx = fy = (W/2) / tan(fov_x/2),  cx = W/2 − 1/2,  cy = H/2 − 1/2.
 Camera orientation: ``look_at(camera_pos, target, up)`` with ``up = +z`` (the sample normal) unless
 the view is within ~2.6° of the normal, then ``up = +y`` (``look_at_up``). Mitsuba's camera frame

@@ -7,6 +7,9 @@ rooms      packages and sub-packages (folders with an __init__.py) of the six to
 arrows     distinct room → room import edges (an import anywhere in a module counts)
 cycles     strongly connected groups of modules under *every* import, top-level or inside a
            function: an import written inside a function to break a cycle still closes it here
+breakers   imports written inside a function whose two modules lie in one cycle (they exist only
+           to keep the cycle from failing at import time)
+private    uses of another module's ``_name`` (tools/private_names.py)
 largest    the longest module (lines) and the longest function (lines, ast end − start + 1)
 """
 
@@ -112,6 +115,42 @@ def cycles(edges: dict[str, set[tuple[str, bool]]]) -> list[list[str]]:
     return out
 
 
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def private_uses(module: str, source: str, known: set[str]) -> list[tuple[int, str]]:
+    """(line, text) of every use in ``source`` (module ``module``) of a private name of another
+    module in ``known``."""
+    tree = ast.parse(source)
+    bound: dict[str, str] = {}  # local name → our module it is bound to
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for alias in node.names:
+                full = f"{node.module}.{alias.name}"
+                if full in known:
+                    bound[alias.asname or alias.name] = full
+                elif node.module in known and node.module != module and _private(alias.name):
+                    found.append((node.lineno, f"from {node.module} import {alias.name}"))
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name in known:
+                    local = alias.asname or alias.name.split(".")[0]
+                    bound[local] = alias.name if alias.asname else local
+    for node in ast.walk(tree):
+        if (
+            isinstance(node, ast.Attribute)
+            and isinstance(node.value, ast.Name)
+            and node.value.id in bound
+            and _private(node.attr)
+            and bound[node.value.id] != module
+            and f"{bound[node.value.id]}.{node.attr}" not in known
+        ):
+            found.append((node.lineno, f"{node.value.id}.{node.attr}"))
+    return sorted(found)
+
+
 def room(mod: str, known: dict[str, Path]) -> str:
     """The package (folder) a module lives in."""
     return mod if known[mod].name == "__init__.py" else mod.rpartition(".")[0]
@@ -136,12 +175,23 @@ def stats() -> dict:
                 if n > longest[2]:
                     longest = (m, node.name, n)
     big = max(lines, key=lines.get)
+    found = cycles(edges)
+    group = {m: i for i, c in enumerate(found) for m in c}
+    breakers = sorted(
+        f"{a} -> {b}"
+        for a, ts in edges.items()
+        for b, top in ts
+        if not top and a in group and group.get(b) == group[a]
+    )
+    private = sum(len(private_uses(m, p.read_text(), set(known))) for m, p in known.items())
     return {
         "modules": len(known),
         "lines": sum(lines.values()),
         "rooms": len(rooms),
         "arrows": len(arrows),
-        "cycles": cycles(edges),
+        "cycles": found,
+        "breakers": breakers,
+        "private_names": private,
         "largest_module": [big, lines[big]],
         "longest_function": [f"{longest[0]}:{longest[1]}", longest[2]],
     }
@@ -158,6 +208,10 @@ def main() -> None:
     print(f"cycles           {len(s['cycles'])}")
     for c in s["cycles"]:
         print("  " + " ↔ ".join(c))
+    print(f"breakers         {len(s['breakers'])}")
+    for b in s["breakers"]:
+        print("  " + b)
+    print(f"private names    {s['private_names']} used outside their module")
     print(f"largest module   {s['largest_module'][0]} ({s['largest_module'][1]} lines)")
     print(f"longest function {s['longest_function'][0]} ({s['longest_function'][1]} lines)")
 

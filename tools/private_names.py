@@ -20,7 +20,6 @@ Configured in pyproject.toml::
 
 from __future__ import annotations
 
-import ast
 import importlib.util
 from pathlib import Path
 
@@ -28,43 +27,9 @@ import grimp
 from importlinter.application import output
 from importlinter.domain.contract import Contract, ContractCheck
 
-__all__ = ["PrivateNamesContract", "private_uses"]
+from tools.house_stats import private_uses
 
-
-def _private(name: str) -> bool:
-    return name.startswith("_") and not name.startswith("__")
-
-
-def private_uses(module: str, source: str, known: set[str]) -> list[tuple[int, str]]:
-    """(line, text) of every use in ``source`` (module ``module``) of a private name of another
-    module in ``known``."""
-    tree = ast.parse(source)
-    bound: dict[str, str] = {}  # local name → our module it is bound to
-    found = []
-    for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            for alias in node.names:
-                full = f"{node.module}.{alias.name}"
-                if full in known:
-                    bound[alias.asname or alias.name] = full
-                elif node.module in known and node.module != module and _private(alias.name):
-                    found.append((node.lineno, f"from {node.module} import {alias.name}"))
-        elif isinstance(node, ast.Import):
-            for alias in node.names:
-                if alias.name in known:
-                    local = alias.asname or alias.name.split(".")[0]
-                    bound[local] = alias.name if alias.asname else local
-    for node in ast.walk(tree):
-        if (
-            isinstance(node, ast.Attribute)
-            and isinstance(node.value, ast.Name)
-            and node.value.id in bound
-            and _private(node.attr)
-            and bound[node.value.id] != module
-            and f"{bound[node.value.id]}.{node.attr}" not in known
-        ):
-            found.append((node.lineno, f"{node.value.id}.{node.attr}"))
-    return sorted(found)
+__all__ = ["PrivateNamesContract"]
 
 
 def _source(module: str) -> Path | None:

@@ -22,7 +22,7 @@ The file follows the adaptive parameterization of Dupuy & Jakob (2018) (field la
 
 How close Mitsuba's evaluation of the file comes to the model is measured, not assumed:
 :func:`closeness` evaluates the file with our reader (which matches Mitsuba's ``measured`` to
-float32 rounding, tests/test_import_rgl.py) on random direction pairs.
+float32 rounding, tests/brdfdata/test_import_rgl.py) on random direction pairs.
 """
 
 from __future__ import annotations

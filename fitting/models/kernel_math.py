@@ -50,7 +50,7 @@ CHUNK = 1024
 # Taylor polynomial for e^r (truncation < 4e-18 relative) and 2^−k from a table. Written with
 # plain arithmetic, floor and a table gather so that LLVM vectorises the loops that use it
 # (libm's exp is an opaque call that keeps them scalar). Accuracy ≈ 2 ulp; tested against
-# numpy's exp in tests/test_models.py.
+# numpy's exp in tests/fitting/models/test_models.py.
 _LN2_HI = 6.93147180369123816490e-01
 _LN2_LO = 1.90821492927058770002e-10
 _INV_LN2 = 1.44269504088896338700e00

@@ -29,6 +29,28 @@ _ENVIRONMENT = {
 }
 
 
+def _say(line: str) -> None:
+    """The command's last line, on the stderr the process started with: a library may have
+    pointed file descriptor 2 elsewhere for a moment in another thread (calibration.decode
+    collects what C decoders print), and that must not swallow the one line the user gets."""
+    sys.stderr.flush()
+    if _STDERR_FD is None:
+        sys.stderr.write(line)
+        return
+    os.write(_STDERR_FD, line.encode("utf-8", "replace"))
+
+
+def _stderr_copy() -> int | None:
+    try:
+        return os.dup(2)
+    except OSError:  # no stderr at all (a daemon): say it where Python can
+        return None
+
+
+#: A copy of the stderr descriptor as it was at start (see _say).
+_STDERR_FD = _stderr_copy()
+
+
 def main() -> None:
     """Entry point: user mistakes print one line (no traceback) and exit 2."""
     warnings.filterwarnings("ignore", category=FutureWarning)
@@ -58,16 +80,14 @@ def main() -> None:
         if isinstance(exc, user_error_types()):
             msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             # Plain write, not rich: rich would wrap a long path onto a second line.
-            sys.stderr.write(f"error: {msg}\n")
+            _say(f"error: {msg}\n")
             sys.exit(2)
         if isinstance(exc, OSError) and exc.errno in _ENVIRONMENT:
             # The machine, not gonio, refused (read-only medium, permissions, full disk): the
             # user can fix that, so it is one line naming the file, not an internal error.
             where = f"{exc.filename}: " if exc.filename else ""
-            sys.stderr.write(f"error: {where}{exc.strerror}; {_ENVIRONMENT[exc.errno]}\n")
+            _say(f"error: {where}{exc.strerror}; {_ENVIRONMENT[exc.errno]}\n")
             sys.exit(2)
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-        sys.stderr.write(
-            f"internal error: {type(exc).__name__}: {first} (run with --debug for a traceback)\n"
-        )
+        _say(f"internal error: {type(exc).__name__}: {first} (run with --debug for a traceback)\n")
         sys.exit(1)

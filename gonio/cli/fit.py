@@ -6,10 +6,10 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
-from gonio.cli._app import app, kv_pairs, out
+from gonio.cli._app import ANALYSIS, DATA, app, kv_pairs, out
+from gonio.plain_text import plain
 
 _BinOption = Annotated[
     float | None,
@@ -30,7 +30,7 @@ _NoWidenOption = Annotated[
 ]
 
 
-@app.command()
+@app.command(rich_help_panel=ANALYSIS)
 def fit(
     samples: Annotated[
         Path,
@@ -294,9 +294,10 @@ def show_verdicts(verdicts, title: str = "verdicts") -> None:
         t.add_column(col, overflow="fold")
     for v in verdicts:
         style = _STATUS_STYLE.get(v["status"], "")
-        t.add_row(v["name"], f"[{style}]{v['status']}[/]", v["reason"], v["advice"])
-    # Reasons are sentences with numbers: wrapped into 80 columns they are hard to read.
-    Console(width=max(out.width, 140)).print(t)
+        status = plain(v["status"])
+        status.stylize(style)
+        t.add_row(plain(v["name"]), status, plain(v["reason"]), plain(v["advice"]))
+    out.print(t)  # a table when it fits, else its rows as records (gonio.cli._app)
 
 
 def verdict_exit(verdicts, accept: bool, label: str | None = None) -> None:
@@ -351,15 +352,14 @@ def _show_comparison(ranked, dest: Path) -> None:
             num(r.aic),
             num(r.bic),
         )
-    # Wrapped or truncated numbers are unreadable: give the table the width it needs.
-    Console(width=max(out.width, 150)).print(t)
+    out.print(t)  # a table when it fits, else its rows as records (gonio.cli._app)
     for r in ranked:
         for w in r.warnings:
             out.print(f"note: {r.label}: {w}")
     out.print(str(dest / "compare.json"))
 
 
-@app.command()
+@app.command(rich_help_panel=ANALYSIS)
 def report(
     run_dir: Annotated[Path | None, typer.Argument(help="Run directory.")] = None,
     samples: Annotated[
@@ -385,7 +385,7 @@ def report(
 
 
 # -- offline data: import, export, the data files (issue 16; logic in brdfdata.formats) -----------
-@app.command(name="import")
+@app.command(name="import", rich_help_panel=DATA)
 def import_cmd(
     fmt: Annotated[str, typer.Argument(metavar="FORMAT", help="rgl | merl | csv")],
     file: Annotated[Path, typer.Argument(help="The file to convert.")],
@@ -446,7 +446,7 @@ def import_cmd(
     )
 
 
-@app.command(name="export")
+@app.command(name="export", rich_help_panel=DATA)
 def export_cmd(
     fmt: Annotated[str, typer.Argument(metavar="FORMAT", help="merl | csv")],
     source: Annotated[Path, typer.Argument(help="SAMPLES.parquet, or for merl a fit-MODEL.json.")],
@@ -465,7 +465,7 @@ def export_cmd(
 data_app = typer.Typer(no_args_is_help=True, help="Real data files (data/README.md).")
 
 
-app.add_typer(data_app, name="data")
+app.add_typer(data_app, name="data", rich_help_panel=DATA)
 
 
 @data_app.command("list")
@@ -482,8 +482,8 @@ def data_list() -> None:
             status = "ok" if ok else "HASH MISMATCH"
         except DataNotFound:
             path, status = "", f"missing (gonio data fetch {rel.split('/')[0]})"
-        t.add_row(rel, "yes" if entry.shipped else "no", status, str(path))
-    Console(width=max(out.width, 160)).print(t)  # paths are unreadable when truncated
+        t.add_row(plain(rel), "yes" if entry.shipped else "no", plain(status), plain(path))
+    out.print(t)
 
 
 @data_app.command("fetch")
@@ -500,7 +500,7 @@ def data_fetch(
         out.print(str(path))
 
 
-@app.command(name="models")
+@app.command(name="models", rich_help_panel=ANALYSIS)
 def models_cmd(
     name: Annotated[
         str | None, typer.Argument(help="One model: a name, named variant or alias.")
@@ -526,9 +526,6 @@ def models_cmd(
     except (KeyError, ValueError) as exc:
         raise UserError(str(exc).splitlines()[0]) from None
 
-    # Names, option lists and references are unreadable when folded into 80 columns: give the
-    # tables the width they need (as `gonio fit`'s comparison table).
-    wide = Console(width=max(out.width, 160))
     t = Table(title="BRDF models (f_r in 1/sr)")
     for col in ("model", "parameter", "unit", "lower", "upper", "sampled in"):
         t.add_column(col)
@@ -542,7 +539,7 @@ def models_cmd(
                 f"{p.upper:g}",
                 "log" if p.log else "linear",
             )
-    wide.print(t)
+    out.print(t)
     ot = Table(title="Options (* = default), aliases, declared properties, reference")
     for col in ("model", "options", "aliases", "properties", "needs", "reference"):
         ot.add_column(col, overflow="fold")
@@ -565,7 +562,7 @@ def models_cmd(
             ", ".join(e.needs) or "–",
             e.reference,
         )
-    wide.print(ot)
+    out.print(ot)
     if not check:
         return
     from fitting.models.properties import property_table
@@ -594,7 +591,7 @@ def models_cmd(
             f"{r['max_albedo']:.4f}",
             f"{r['max_reciprocity_error']:.1e}",
         )
-    wide.print(pt)
+    out.print(pt)
     out.print(
         "energy ≤ 1: directional albedo ≤ 1 at every tested θo and parameter set; the "
         "seed's Phong k_s(l̂·r̂)^n is reciprocal but not energy conserving; anisotropic models "

@@ -8,11 +8,20 @@ from typing import Annotated
 
 import typer
 
-from gonio.cli._app import ANSWERS_OPTION, YES_OPTION, app, operator_for, out, scene_for
+from gonio.cli._app import (
+    ANSWERS_OPTION,
+    LAB,
+    SIMULATION,
+    YES_OPTION,
+    app,
+    operator_for,
+    out,
+    scene_for,
+)
 from gonio.plain_text import printable
 
 
-@app.command()
+@app.command(rich_help_panel=SIMULATION)
 def demo(
     out_dir: Annotated[Path | None, typer.Option("--out", help="Run directory to create.")] = None,
     scene: Annotated[Path | None, typer.Option("--scene", help="Scene TOML to simulate.")] = None,
@@ -43,7 +52,7 @@ def _demo_verdicts(run_dir: Path) -> None:
             out.print(f"demo fit {path.name} failed: {', '.join(names)} (see the verdicts above)")
 
 
-@app.command()
+@app.command(rich_help_panel=LAB)
 def acquire(
     rig: Annotated[Path | None, typer.Option("--rig", help="Rig TOML.")] = None,
     plan: Annotated[Path | None, typer.Option("--plan", help="Plan TOML.")] = None,
@@ -83,7 +92,7 @@ def acquire(
         raise typer.Exit(3)
 
 
-@app.command()
+@app.command(rich_help_panel=LAB)
 def calibrate(
     run_dir: Annotated[Path, typer.Argument(help="Run directory.")],
     bin_px: Annotated[
@@ -180,7 +189,7 @@ def _print_budget(metadata: dict[str, str]) -> None:
     )
 
 
-@app.command(name="calibrate-camera")
+@app.command(name="calibrate-camera", rich_help_panel=LAB)
 def calibrate_camera(
     images: Annotated[list[Path], typer.Argument(help="Board images (JPEG/PNG/TIFF).")],
     board: Annotated[
@@ -212,7 +221,7 @@ def calibrate_camera(
         write_result_json(result, json_out)
 
 
-@app.command(name="calibrate-rig")
+@app.command(name="calibrate-rig", rich_help_panel=LAB)
 def calibrate_rig_cmd(
     rig: Annotated[Path, typer.Option("--rig", help="Rig TOML.")] = ...,  # type: ignore[assignment]
     board: Annotated[
@@ -259,7 +268,7 @@ def calibrate_rig_cmd(
     )
 
 
-@app.command(name="capture")
+@app.command(name="capture", rich_help_panel=LAB)
 def capture_cmd(
     kind: Annotated[str, typer.Argument(help="dark | flat | reference")],
     run_dir: Annotated[Path, typer.Argument(help="Run directory.")],
@@ -285,7 +294,7 @@ def capture_cmd(
 runs_app = typer.Typer(no_args_is_help=True, help="Run directories: list and inspect.")
 
 
-app.add_typer(runs_app, name="runs")
+app.add_typer(runs_app, name="runs", rich_help_panel=LAB)
 
 
 @runs_app.command("list")
@@ -324,7 +333,7 @@ def runs_show(
 rig_app = typer.Typer(no_args_is_help=True, help="Rig hardware.")
 
 
-app.add_typer(rig_app, name="rig")
+app.add_typer(rig_app, name="rig", rich_help_panel=LAB)
 
 
 @rig_app.command("check")

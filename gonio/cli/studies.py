@@ -10,12 +10,12 @@ from typing import Annotated
 
 import typer
 
-from gonio.cli._app import app, out
+from gonio.cli._app import ANALYSIS, SIMULATION, app, out
 
 simulate_app = typer.Typer(no_args_is_help=True, help="The simulated rig.")
 
 
-app.add_typer(simulate_app, name="simulate")
+app.add_typer(simulate_app, name="simulate", rich_help_panel=SIMULATION)
 
 
 @simulate_app.command("plan")
@@ -34,7 +34,7 @@ _FROM_CSV = typer.Option(
 )
 
 
-app.add_typer(study_app, name="study")
+app.add_typer(study_app, name="study", rich_help_panel=SIMULATION)
 
 
 @study_app.command("accuracy-vs-time")
@@ -149,7 +149,7 @@ def _describe_plan(plan_path: Path, rig_path: Path | None, model: str | None) ->
         )
 
 
-@app.command(name="plan")
+@app.command(name="plan", rich_help_panel=ANALYSIS)
 def plan_cmd(
     target: Annotated[
         str | None, typer.Option("--target", help="PARAM=REL_ERROR, e.g. m=0.05.")

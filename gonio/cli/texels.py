@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from gonio.cli._app import app, kv_pairs, out
+from gonio.cli._app import SCALE_OUT, app, kv_pairs, out
 
 _SCHEDULER = typer.Option(
     "--scheduler",
@@ -44,7 +44,7 @@ def _fit_options(model: str, option: list[str], shared: str, knobs: tuple[int, i
     return texel_fit_options(base, walkers=walkers, steps=steps)
 
 
-@app.command(name="fit-texels")
+@app.command(name="fit-texels", rich_help_panel=SCALE_OUT)
 def fit_texels_cmd(
     samples: Annotated[
         Path, typer.Argument(help="Per-texel samples (gonio calibrate --per-texel).")
@@ -88,7 +88,7 @@ def fit_texels_cmd(
     )
 
 
-@app.command(name="fit-batch")
+@app.command(name="fit-batch", rich_help_panel=SCALE_OUT)
 def fit_batch_cmd(
     tables: Annotated[str, typer.Argument(help="A folder of *.parquet samples, or a glob.")],
     model: Annotated[str, _MODEL] = "torrance-sparrow",

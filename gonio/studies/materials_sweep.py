@@ -103,7 +103,7 @@ MATERIALS: tuple[MaterialSpec, ...] = (
 
 # The default isotropic plan's grid (configs/plans/isotropic.toml) with a third, short exposure:
 # the gold film's and nickel's mirror peaks (f ≈ 10 sr⁻¹) collect ≈ 1.5e4 e⁻ in 0.2 ms and
-# saturate the 3e4 e⁻ full well at 2 ms (tests/test_real_materials.py).
+# saturate the 3e4 e⁻ full well at 2 ms (tests/gonio/test_real_materials.py).
 FULL_PLAN: dict[str, Any] = {
     "name": "isotropic-3x",
     "type": "isotropic",

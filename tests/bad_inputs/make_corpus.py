@@ -1,4 +1,4 @@
-"""Regenerate the bad-input corpus used by tests/test_bad_inputs.py.
+"""Regenerate the bad-input corpus used by tests/gonio/test_bad_inputs.py.
 
     .venv/bin/python tests/bad_inputs/make_corpus.py
 

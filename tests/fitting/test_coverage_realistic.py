@@ -1,0 +1,157 @@
+"""Coverage where the instrument is realistic (issue 17): 30 simulated rigs, each with fresh
+sensor noise *and* a fresh draw of the instrument's shared errors from the distributions its
+rig file states — the lamp's certificate (1.5 %), the lamp's distance (3 mm), the arms'
+encoder zeros (0.2° each), the sample's tilt (0.2° about x and y), the gears' play (0.3° ± 50 %
+per axis) and the arms' sag (0.15°) — on `configs/scenes/realistic.toml`. Its 5 mm lamp and
+its drift stay; the camera's non-linearity, the flat source's fall-off and stray light, which
+no budget component sizes yet, are off; darks and a flat field are recorded, as a lab run
+would. A real rig has one such error for its life; coverage is a statement about rigs, so
+every repeat is another rig.
+
+The fit carries the shared errors as nuisance parameters (fitting.nuisance): its 68 % interval
+must hold the truth in 55–80 % of repeats and its 95 % interval in ≥ 88 %, for kd, ks and m.
+The twin fits the same samples the old way — the scale's σ added to every sample's σ in
+quadrature, the angles not carried — and its 95 % coverage of kd must fall below 80 %: the
+shared error averaged away as if it were independent (so this test can fail).
+
+Measured (stop 35): kd 0.63 / 0.97, ks 0.60 / 0.93, m 0.80 / 0.93 (68 % / 95 %). m's bound holds
+at its edge, and its intervals are still about 1.4× too wide: over these rigs m's error is 0.72
+of its posterior half-width (kd's and ks's 1.04 and 0.99) and biased by +0.36 of it (the 5 mm
+lamp's blur of the lobe, which the model does not carry). Two causes were found and removed:
+the first walkers were drawn axis-wise with the Laplace sds, off the ridge of the strongly
+correlated light-elevation zero and tilt about y, where 600 steps still held them (0.87 → 0.83),
+and the nuisance model turned a camera-azimuth error's image at the normal, which the rig's
+look-at rule does not (→ 0.80). What is left: with the world's errors fixed, noise alone moves
+m by 0.56 of its half-width, so the rigs' errors move it by about 0.5 where the posterior
+expects about 0.83; the nuisance model matches the world error by error
+(tests/fitting/test_nuisance.py: slopes 1.000), so the remaining width comes from how the errors
+combine, not from one of them.
+
+Each repeat runs in a fresh interpreter (spawn, as tests/fitting/test_coverage_sim.py, which says
+why).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acquisition.config import (
+    CalibrationPhasesConfig,
+    DarkPhaseConfig,
+    FlatPhaseConfig,
+    PlanConfig,
+    load_rig,
+)
+from acquisition.operator import AutoOperator
+from calibration.reduce import ReduceOptions, reduce_run
+from fitting.budget import read_budget, scale_sigma
+from fitting.fit import FitOptions, fit_samples
+from gonio.pipeline import AcquireSpec, acquire
+from simulator.instrument_draws import InstrumentBudget, latin_hypercube_normal
+from simulator.scene import load_scene
+from simulator.truth import reference_parameters
+from tests.support.paths import REPO
+
+# 30, the issue's number: the binomial sd of a 95 % coverage is then 0.040, so ≥ 0.88 is
+# nominal less 1.8 sd; and the twin's expected kd coverage (below) is far under 0.80.
+REPEATS = 30
+PLAN = PlanConfig(
+    name="coverage-realistic",
+    theta_i_deg=(25.0, 50.0),
+    theta_o_deg=(0.0, 20.0, 40.0, 60.0),
+    delta_phi_deg=(180.0, 120.0),
+    exposures_s=(0.002, 0.016),
+    # A lab run records darks and a flat field: uncorrected, the realistic sensor's 0.5 % PRNU
+    # alone puts χ²/dof at 1.37.
+    calibration=CalibrationPhasesConfig(
+        dark=DarkPhaseConfig(count=8), flat=FlatPhaseConfig(count=16)
+    ),
+)
+#: What the rig file states (k = 1) and each repeat's world draws from: the lamp's certificate
+#: 1.5 %, its distance 3 mm, the three encoder zeros 0.2°, the tilts 0.2°, play 0.3° ± 50 %, sag
+#: 0.15° (simulator.instrument_draws.InstrumentBudget says where each size comes from).
+BUDGET = InstrumentBudget()
+FIT = dict(
+    model="torrance-sparrow",
+    model_options={"fresnel": "none", "shadowing": "smith-rational"},
+    channels=["G"],
+    walkers=24,
+    steps=600,
+    n_starts=2,
+)
+
+
+def _world_and_rig(k: int):
+    """Repeat k's world (realistic.toml with a fresh draw of the shared errors, and fresh noise)
+    and the rig file that states their distributions (configs/rigs/sim.toml plus the budget).
+    The draws are a Latin hypercube over the repeats (InstrumentBudget: why)."""
+    base = load_scene(REPO / "configs" / "scenes" / "realistic.toml")
+    z = latin_hypercube_normal(REPEATS, InstrumentBudget.N_DRAWS, seed=17)[k]
+    scene = BUDGET.world(base, z, seed=3000 + k)
+    return base, scene, BUDGET.rig(load_rig(REPO / "configs" / "rigs" / "sim.toml"))
+
+
+def _quadrature(table):
+    """The same samples as calibration made them before shared errors had a budget: the
+    scale's σ in every sample's σ, in quadrature, and no budget for the fit to carry."""
+    rel = scale_sigma(read_budget(table.metadata), "G")
+    old = table.select(np.ones(len(table), bool))
+    old.sigma = np.hypot(table.sigma, rel * np.abs(table.f))
+    old.metadata = {k: v for k, v in table.metadata.items() if k != "gonio.budget"}
+    return old
+
+
+def _one_repeat(k: int) -> dict[str, dict[str, tuple[bool, bool]]]:
+    """Per treatment and parameter: (truth in 68 %, truth in 95 %)."""
+    base, scene, rig = _world_and_rig(k)
+    truth = reference_parameters(base)
+    with tempfile.TemporaryDirectory() as tmp:
+        run = Path(tmp) / "run"
+        spec = AcquireSpec(rig=rig, plan=PLAN, scene=scene, progress=False, announce=False,
+                           operator=AutoOperator())  # fmt: skip
+        acquire(run, spec)
+        table = reduce_run(run, ReduceOptions(bin_px=2, mode="center"))
+    out = {}
+    for label, data in (("nuisance", table), ("quadrature", _quadrature(table))):
+        fit = fit_samples(data, FitOptions(seed=k, **FIT)).to_dict()
+        out[label] = {
+            name: (p["p16"] <= truth[name] <= p["p84"], p["p2.5"] <= truth[name] <= p["p97.5"])
+            for name, p in fit["parameters"].items()
+            if name in truth
+        }
+    return out
+
+
+# 30 acquisitions and 60 fits on the 2 cores, which the suite's other worker shares: ~5 min
+# alone, 10 min when the cores are contended (measured) — the suite's 600 s default is too close.
+@pytest.mark.timeout(1200)
+def test_coverage_on_realistic_rigs_and_the_quadrature_twin_fails() -> None:
+    with ProcessPoolExecutor(max_workers=2, mp_context=get_context("spawn")) as pool:
+        repeats = list(pool.map(_one_repeat, range(REPEATS)))
+    cover = {
+        label: {
+            name: (
+                float(np.mean([r[label][name][0] for r in repeats])),
+                float(np.mean([r[label][name][1] for r in repeats])),
+            )
+            for name in ("kd_G", "ks_G", "m")
+        }
+        for label in ("nuisance", "quadrature")
+    }
+    for label, by_name in cover.items():
+        for name, (c68, c95) in by_name.items():
+            print(f"{label}: {name} 68 % covers {c68:.2f}, 95 % covers {c95:.2f} of {REPEATS}")
+    for name, (c68, c95) in cover["nuisance"].items():
+        # The issue's bands: nominal 0.68 and 0.95, less about two binomial sd at 30 repeats
+        # (the 68 % band's top is 1.4 sd above nominal).
+        assert 0.55 <= c68 <= 0.80, (name, c68)
+        assert c95 >= 0.88, (name, c95)
+    # The old treatment: the 1.9 % scale σ shrunk by √N into kd's interval (σ_kd ≈ 0.1 %),
+    # so a 95 % interval holds the truth only when the rig's scale error is ≲ 0.1 %: rarely.
+    assert cover["quadrature"]["kd_G"][1] < 0.80, cover["quadrature"]["kd_G"]

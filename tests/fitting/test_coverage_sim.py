@@ -1,0 +1,88 @@
+"""Calibrated uncertainty on simulated data (issue #7): over 60 repeats with independent sensor
+noise — Mitsuba renders, the EMVA sensor, the real calibration chain, then the MCMC fit — the
+reported 68% interval covers the scene's truth in 55–80% of repeats and the 95% interval in at
+least 88%, for every parameter. The test prints the coverage.
+
+Each repeat runs in a fresh interpreter (a spawn pool of two, one per core): a repeat is then
+a function of its seed alone. Run in the same process after the rest of the suite, the same
+seeds gave other noise realisations (cause not found; every realisation is equally valid, but
+a test's outcome should not depend on which tests ran before it)."""
+
+from __future__ import annotations
+
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+
+from acquisition.config import PlanConfig, load_rig
+from calibration.reduce import ReduceOptions, reduce_run
+from fitting.fit import FitOptions, fit_samples
+from gonio.pipeline import AcquireSpec, acquire
+from simulator.scene import load_scene
+from simulator.truth import reference_parameters
+from tests.support.paths import REPO
+
+# 60, not 30: at 30 repeats the binomial sd of a 68 % coverage is 0.085, so even perfectly
+# calibrated intervals fall outside the bands below for some parameter about one run in four;
+# at 60 the sd is 0.060 (0.028 for the 95 % interval) and the same bands test something.
+REPEATS = 60
+PLAN = PlanConfig(
+    name="coverage",
+    theta_i_deg=(25.0, 50.0),
+    theta_o_deg=(0.0, 20.0, 40.0, 60.0),
+    delta_phi_deg=(180.0, 120.0),
+    exposures_s=(0.002, 0.016),
+)
+
+
+def _one_repeat(k: int) -> dict[str, tuple[bool, bool]]:
+    """Acquire, calibrate and fit repeat `k`; per parameter, (truth in 68 %, truth in 95 %)."""
+    base = load_scene(REPO / "configs" / "scenes" / "demo.toml")
+    rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
+    truth = reference_parameters(base)
+    scene = base.model_copy(update={"seed": 1000 + k})  # independent noise per repeat
+    with tempfile.TemporaryDirectory() as tmp:
+        run = Path(tmp) / "run"
+        acquire(run, AcquireSpec(rig=rig, plan=PLAN, scene=scene, progress=False, announce=False))
+        table = reduce_run(run, ReduceOptions(bin_px=2, mode="center"))
+    # 600 steps: the fits' convergence verdict asks for more (R̂ ≈ 1.02–1.04), but 3000 steps
+    # gave the same coverage to within one repeat in 90 — the intervals are settled by then.
+    fit = fit_samples(
+        table,
+        FitOptions(
+            model="torrance-sparrow",
+            model_options={"fresnel": "none", "shadowing": "smith-rational"},
+            channels=["G"],
+            walkers=24,
+            steps=600,
+            seed=k,
+            n_starts=2,
+        ),
+    ).to_dict()
+    out = {}
+    for name, p in fit["parameters"].items():
+        t = truth.get(name)
+        if t is None:  # the discrepancy term has no truth
+            continue
+        out[name] = (p["p16"] <= t <= p["p84"], p["p2.5"] <= t <= p["p97.5"])
+    return out
+
+
+def test_interval_coverage_over_simulated_repeats() -> None:
+    with ProcessPoolExecutor(max_workers=2, mp_context=get_context("spawn")) as pool:
+        repeats = list(pool.map(_one_repeat, range(REPEATS)))
+    names = set(repeats[0])
+    assert names == {"kd_G", "ks_G", "m"}
+    for name in sorted(names):
+        c68 = np.mean([r[name][0] for r in repeats])
+        c95 = np.mean([r[name][1] for r in repeats])
+        print(
+            f"{name}: 68% interval covers the truth in {c68:.2f}, 95% in {c95:.2f} "
+            f"of {REPEATS} repeats"
+        )
+        # The issue's bands: nominal 0.68 and 0.95, less about two binomial sd at 30 repeats.
+        assert 0.55 <= c68 <= 0.80, (name, c68)
+        assert c95 >= 0.88, (name, c95)
