@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from acquisition.config import RigConfig
-from brdfdata.directions import camera_axes, spherical_to_vector, vector_to_spherical
+from brdfdata.directions import camera_axes, spherical_to_vector
 from plumbing.errors import UserError
 
 __all__ = ["Pose", "Unreachable", "Kinematics"]
@@ -187,12 +187,6 @@ def separation_rad(pose: Pose) -> float:
         a[0] * b[1] - a[1] * b[0],
     )
     return math.atan2(math.hypot(*cross), a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
-
-
-def pose_from_vectors(wi: np.ndarray, wo: np.ndarray) -> Pose:
-    ti, pi = vector_to_spherical(wi)
-    to, po = vector_to_spherical(wo)
-    return Pose(float(ti), float(pi), float(to), float(po))
 
 
 def look_at_rotation(camera_pos_m: np.ndarray, target_m: np.ndarray | None = None) -> np.ndarray:

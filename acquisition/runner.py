@@ -627,10 +627,6 @@ def _progress(enabled: bool, total: int, completed: int) -> Progress:
     return progress("acquiring (poses)", total, completed=completed, enabled=enabled)
 
 
-def lab_time_estimate_s(plan: Plan, rig_readout_s: float, settle_s: float) -> float:
-    return plan.lab_time_s(rig_readout_s, settle_s)
-
-
 def fmt_duration(seconds: float) -> str:
     if not math.isfinite(seconds):
         return "?"

@@ -63,7 +63,7 @@ def plain_log_prob(lik: Likelihood):
         for i, d in enumerate(lik.data):
             params = {k: float(v[0, 0]) for k, v in space.channel_params(nat, d.channel).items()}
             fm = lik.model.evaluate(params, d.wi, d.wo, backend="numpy")
-            ref = fm if lik._f_ref is None else lik._f_ref[i]  # as Likelihood does
+            ref = fm if lik.discrepancy_reference is None else lik.discrepancy_reference[i]
             var = d.sigma**2 + (0.0 if s is None else (s[0] * ref) ** 2)
             total += float(np.sum(-0.5 * ((d.f - fm) ** 2 / var + np.log(2 * np.pi * var))))
         return total if np.isfinite(total) else -np.inf
@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> dict:
     t0 = time.perf_counter()
     lsq = fit_least_squares(lik, seed=args.seed)
     t_lsq = time.perf_counter() - t0
-    lik.set_discrepancy_reference(lsq.x)  # as fit_samples does
+    lik = lik.frozen_at(lsq.x)  # as fit_samples does
     scale = np.sqrt(np.clip(np.diag(lsq.cov), 1e-12, None)) if lsq.cov is not None else None
     x0 = lsq.x.copy()
     if not args.no_discrepancy:

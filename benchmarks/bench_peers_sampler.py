@@ -18,7 +18,7 @@ One run, two posteriors, ESS per second of each sampler and the gonio/NUTS ratio
 
 The posterior (fitting.likelihood, fitting.priors): θ in gonio's sampled coordinates (log of the log
 parameters), flat on the prior box, −∞ outside; ln L = Σ −½[(f − f̂)²/v + ln 2πv] with v = σ² + (s
-f̃)², f̃ = |f̂(θ_LSQ)| frozen at the least-squares optimum (``set_discrepancy_reference``). It is
+f̃)², f̃ = |f̂(θ_LSQ)| frozen at the least-squares optimum (``Likelihood.frozen_at``). It is
 written again in JAX float64 below (geometry, Beckmann D, V-cavity G, dielectric Fresnel, all as
 fitting.models.microfacet_kernels computes them) and checked against ``Likelihood.log_prob`` at
 several points to 1e-9 relative *before* anything is sampled, and its gradient against central
@@ -199,7 +199,7 @@ def run_gonio(table: SampleTable, target_ess: float, walkers: int, seed: int) ->
         lik.log_prob(np.tile(np.mean(space.bounds, axis=0), (2, 1)))
     t0 = time.perf_counter()
     lsq = fit_least_squares(lik, seed=seed)
-    lik.set_discrepancy_reference(lsq.x)
+    lik = lik.frozen_at(lsq.x)
     x_start = _best_discrepancy(lik, lsq.x)
     cov = None if lsq.cov is None else _walkers_covariance(lsq.cov, space.specs, x_start, None)
     # the model's precision for the sampling only, as fit_samples chooses it (fitting.likelihood)
@@ -270,7 +270,7 @@ def jax_posterior(lik: Likelihood, x_ref: np.ndarray):
     lo, hi = (np.asarray(b, dtype=np.float64) for b in space.bounds)
     log_idx = np.flatnonzero(space.is_log)
     s_idx = names.index("discrepancy")
-    # f̃ by set_discrepancy_reference's rule, from gonio's prediction at x_ref (it is data)
+    # f̃ by Likelihood.frozen_at's rule, from gonio's prediction at x_ref (it is data)
     refs = [
         np.where(np.isfinite(fm[0]), np.abs(fm[0]), np.abs(d.f))
         for d, fm in zip(lik.data, lik.predict(np.atleast_2d(x_ref)), strict=True)

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from plumbing.atomic import atomic_write_bytes
 from plumbing.inputs import MiB, read_input_text
 
 __all__ = [
@@ -366,10 +367,8 @@ def write_compare(path: str | os.PathLike, scores: Sequence[ModelScore]) -> Path
         "criterion": "elpd_loo",
         "models": [s.to_dict() for s in scores],
     }
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
-    os.replace(tmp, path)
-    return path
+    data = (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode()
+    return atomic_write_bytes(path, data, overwrite=True)
 
 
 def read_compare(path: str | os.PathLike) -> list[dict]:
@@ -460,6 +459,23 @@ def restrict(model, fix: Mapping[str, float] | None, priors) -> tuple[dict, obje
     return fix, priors
 
 
+def candidate_options(base, c: Candidate, *, comparison: bool = True):
+    """The FitOptions of candidate ``c``: ``base`` with the candidate's model, options and
+    shared names; in a comparison its fixes and priors reduced to the names the model knows
+    (one --fix or priors file serves several models), in a single fit taken as given."""
+    from fitting import models
+    from fitting.priors import PriorsConfig, load_priors
+
+    opts = base.replace(model=c.model, model_options=dict(c.options), shared=c.shared)
+    if not comparison:
+        return opts
+    priors = base.priors
+    if priors is not None and not isinstance(priors, PriorsConfig):
+        priors = load_priors(priors)
+    fx, pr = restrict(models.get(c.model, **c.options), base.fix, priors)
+    return opts.replace(fix=fx, priors=pr)
+
+
 def run_comparison(
     table,
     cands: Sequence[Candidate],
@@ -469,29 +485,22 @@ def run_comparison(
     max_draws: int = 500,
     on_fit=None,
     progress: bool = False,
+    setups: Mapping | None = None,
 ) -> tuple[list[ModelScore], dict]:
-    """Fit every candidate with the `base` FitOptions (its model, options and shared names
-    replaced by the candidate's; its fixes and priors reduced to the names the model knows),
-    write fit-<label>.json/.h5 in ``out_dir``, score and rank them, write
-    ``out_dir/compare.json``. ``on_fit(candidate, result)`` is called after each fit.
+    """Fit every candidate with its :func:`candidate_options` of the `base` FitOptions, write
+    fit-<label>.json/.h5 in ``out_dir``, score and rank them, write ``out_dir/compare.json``.
+    ``on_fit(candidate, result)`` is called after each fit; ``setups`` (label →
+    fitting.fit.FitSetup) are the candidates' setups where the caller has checked them.
     Returns (ranked scores, {label: FitResult})."""
-    from fitting import models
     from fitting.fit import fit_samples
-    from fitting.priors import PriorsConfig, load_priors
 
     out_dir = Path(out_dir)
-    priors = base.priors
-    if priors is not None and not isinstance(priors, PriorsConfig):
-        priors = load_priors(priors)
+    setups = setups or {}
     results, scores = {}, []
     for c in cands:
-        model = models.get(c.model, **c.options)
-        fx, pr = restrict(model, base.fix, priors)
-        opts = base.replace(
-            model=c.model, model_options=dict(c.options), shared=c.shared, fix=fx, priors=pr
-        )
+        opts = candidate_options(base, c)
         sub = out_dir if c.label == c.model else out_dir / c.label
-        res = fit_samples(table, opts, out_dir=sub, progress=progress)
+        res = fit_samples(table, opts, out_dir=sub, progress=progress, setup=setups.get(c.label))
         results[c.label] = res
         scores.append(score_fit(res, c.label, max_draws=max_draws, seed=base.seed))
         if on_fit is not None:

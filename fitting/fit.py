@@ -59,7 +59,7 @@ from fitting.priors import DISCREPANCY, ParameterSpace, PriorsConfig, albedo_pri
 from fitting.result import FitResult
 from fitting.verdicts import judge
 
-__all__ = ["FitOptions", "best_approximation", "fit_samples", "summarise"]
+__all__ = ["FitOptions", "FitSetup", "fit_setup", "best_approximation", "fit_samples", "summarise"]
 
 
 def summarise(space: ParameterSpace, draws: np.ndarray, x_map: np.ndarray) -> dict[str, dict]:
@@ -126,13 +126,16 @@ def _fingerprint(lik: Likelihood, model_name, options, kind, nu, censor) -> str:
 @dataclass(frozen=True)
 class FitOptions:
     """Everything that defines a fit besides the data (built once by the CLI, the demo and the
-    studies; `replace(**changes)` for a variant).
+    studies; `replace(**changes)` for a variant, `with_mcmc(**changes)` for another sampler
+    setting).
 
     ``model``/``model_options``: a registered model and its options. ``channels``: which to fit
     (default: all present). ``shared``: parameters shared by the channels (None: m and the
     Fresnel parameters; kd, ks per channel). ``fix``: parameters held at natural values (bare
-    or per-channel names). ``priors``: a PriorsConfig or a priors file. ``steps`` is the MCMC
-    maximum per ensemble; ``ensembles`` ≥ 2 runs independent ensembles (seeds drawn from
+    or per-channel names). ``priors``: a PriorsConfig or a priors file. ``mcmc``: how the
+    sampler runs (fitting.mcmc.McmcOptions: walkers, the step maximum per ensemble, a wall-time
+    budget, an ESS target, the moves), or None for no MCMC (the Laplace approximation at the
+    least-squares optimum). ``ensembles`` ≥ 2 runs independent ensembles (seeds drawn from
     ``seed``, groups ``mcmc``, ``mcmc_1``… in the .h5), pools their chains and reports R̂ across
     them; with one ensemble R̂ is the split-walker R̂ (τ, ESS and acceptance are then those of
     the first ensemble, ESS × ensembles).
@@ -145,10 +148,7 @@ class FitOptions:
     fix: Mapping[str, float] = field(default_factory=dict)
     priors: PriorsConfig | str | os.PathLike | None = None
     energy_conservation: bool = False
-    mcmc: bool = True
-    walkers: int = 32
-    steps: int = 2000
-    time_budget_s: float | None = None
+    mcmc: McmcOptions | None = field(default_factory=McmcOptions)
     seed: int = 0
     likelihood: str = "gaussian"
     nu: float = 4.0
@@ -160,10 +160,8 @@ class FitOptions:
     loss: str | None = None
     n_starts: int = 8
     ensembles: int = 1
-    moves: str = "de"
-    target_ess: float | None = None
     # A second stop rule: after emcee's own criterion, run on until every R̂ and ESS meet this
-    # target (fitting.mcmc.extend_chain), within `steps` in all.
+    # target (fitting.mcmc.extend_chain), within the sampler's max_steps in all.
     converge: ConvergenceTarget | None = None
     # The file a binned table (fitting.binning) was streamed from: the fit then corrects the
     # bins for the model's curvature and states what binning still moves (fitting.binning).
@@ -180,9 +178,27 @@ class FitOptions:
     def replace(self, **changes) -> FitOptions:
         return dataclasses.replace(self, **changes)
 
+    def with_mcmc(self, **changes) -> FitOptions:
+        """The same fit with the sampler's options changed (MCMC on if it was off)."""
+        return self.replace(mcmc=dataclasses.replace(self.mcmc or McmcOptions(), **changes))
 
-def _setup(table: SampleTable, opt: FitOptions):
-    """(model, channels, parameter space, likelihood) of a fit."""
+
+@dataclass(frozen=True)
+class FitSetup:
+    """What a fit of some FitOptions to a table stands on, validated once: the model, the
+    fitted channels and the parameter space (per-channel and shared names, fixes, priors, the
+    nuisance parameters of the samples' shared errors, the energy prior). Made by
+    :func:`fit_setup`; ``fit_samples(..., setup=)`` uses it instead of building it again."""
+
+    model: object
+    channels: list[str]
+    space: ParameterSpace
+
+
+def fit_setup(table: SampleTable, opt: FitOptions) -> FitSetup:
+    """The model, channels and parameter space of fitting ``opt`` to ``table`` — the one place
+    that checks them: an unknown channel, model option, --fix, --shared name or priors entry
+    is a ValueError (PriorsError for a priors file) with a one-line message."""
     model = models.get(opt.model, **dict(opt.model_options))
     present = table.channels
     channels = list(opt.channels) if opt.channels is not None else present
@@ -206,24 +222,27 @@ def _setup(table: SampleTable, opt: FitOptions):
         shared_errors(
             read_budget(table.metadata), channels, positions=arm_positions_known(table.metadata)
         )
-        if opt.shared_errors and opt.mcmc
+        if opt.shared_errors and opt.mcmc is not None
         else None
     )
     if shared is not None:
         space = with_nuisances(space, shared)
     if opt.energy_conservation or (priors is not None and priors.energy_conservation):
         space.energy_prior = albedo_prior(model, space)
-    lik = Likelihood(
-        model,
+    return FitSetup(model, channels, space)
+
+
+def _likelihood(table: SampleTable, opt: FitOptions, setup: FitSetup) -> Likelihood:
+    return Likelihood(
+        setup.model,
         table,
-        space,
+        setup.space,
         kind=opt.likelihood,
         nu=opt.nu,
         censor=opt.censor,
-        channels=channels,
+        channels=setup.channels,
         dark_snr=dark_snr_of(table.metadata),
     )
-    return model, channels, space, lik
 
 
 def fit_samples(
@@ -232,31 +251,35 @@ def fit_samples(
     *,
     out_dir: str | os.PathLike | None = None,
     progress: bool = False,
+    setup: FitSetup | None = None,
 ) -> FitResult:
     """Fit ``options.model`` to ``table``; write fit-<model>.json (+ .h5 chain) into
-    ``out_dir`` (see FitOptions for every choice)."""
+    ``out_dir`` (see FitOptions for every choice). ``setup``: :func:`fit_setup` of the same
+    table and options, when the caller has checked them already."""
     opt = options or FitOptions()
     t0 = time.perf_counter()
-    _model, channels, space, lik = _setup(table, opt)
-    lsq = _search_then_polish(table, lik, opt)
+    setup = setup or fit_setup(table, opt)
+    _model, channels, space = setup.model, setup.channels, setup.space
+    lik = _likelihood(table, opt, setup)
+    lsq = _search_then_polish(table, lik, opt, setup)
     eps_corrected = None
     if opt.binned_source is not None and "gonio.binned" in table.metadata:
         # Binned samples: remove the model's curvature over each bin from its mean (one more
         # streamed pass at the least-squares optimum), then fit the corrected bins.
         table, eps_corrected = _correct_binning(table, lik, lsq.x, opt.binned_source)
-        _model, channels, space, lik = _setup(table, opt)
+        lik = _likelihood(table, opt, setup)
         lsq = _polish(lik, lsq.x, opt, len(table))
     # The fractional discrepancy scales with the least-squares prediction, frozen (see
     # fitting.likelihood: a θ-dependent scale rewards overshooting, a measured one biases).
-    lik.set_discrepancy_reference(lsq.x)
-    lik.set_angle_reference(lsq.x)  # the arms' zero errors linearised there (fitting.likelihood)
+    # and the arms' zero errors are linearised there (fitting.likelihood.Likelihood.frozen_at).
+    lik = lik.frozen_at(lsq.x)
     x_lsq = _best_discrepancy(lik, lsq.x)
     out_dir = Path(out_dir) if out_dir is not None else None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(opt.seed)
     extras: dict = {"lsq": lsq, "likelihood": lik, "space": space}
-    if opt.mcmc:
+    if opt.mcmc is not None:
         h5 = None if out_dir is None else out_dir / f"fit-{opt.model}.h5"
         coords = sampler_coordinates(space, _model, x_lsq)
         # The model in float32 where its rounding is negligible beside the noise (about twice
@@ -267,7 +290,7 @@ def fit_samples(
             res = _run_ensembles(lik, lsq, x_lsq, opt, rng, h5, progress, coords)
             if opt.converge is not None:
                 log_prob = lik.log_prob if coords is None else coords.wrap(lik.log_prob)
-                res = extend_chain(res, log_prob, opt.converge, opt.steps, opt.seed) or res
+                res = extend_chain(res, log_prob, opt.converge, opt.mcmc.max_steps, opt.seed) or res
             lp_lsq = lik.log_prob(x_lsq)  # in the chain's precision, to compare with its values
         if coords is not None:
             res = _from_sampler(res, coords, max(1, int(opt.ensembles)))
@@ -331,7 +354,7 @@ def fit_samples(
 SEARCH_ROWS = 50_000
 
 
-def _search_then_polish(table: SampleTable, lik: Likelihood, opt: FitOptions):
+def _search_then_polish(table: SampleTable, lik: Likelihood, opt: FitOptions, setup: FitSetup):
     """The least-squares fit of `lik`: the multi-start search on all rows of a table up to
     SEARCH_ROWS, else on a seeded random subsample of that size, polished from its best start
     on all rows."""
@@ -341,7 +364,7 @@ def _search_then_polish(table: SampleTable, lik: Likelihood, opt: FitOptions):
     pick = np.random.default_rng(opt.seed).choice(len(table), SEARCH_ROWS, replace=False)
     keep = np.zeros(len(table), dtype=bool)
     keep[pick] = True
-    *_, sub = _setup(table.select(keep), opt)
+    sub = _likelihood(table.select(keep), opt, setup)
     search = fit_least_squares(sub, n_starts=opt.n_starts, **kw)
     return _polish(lik, search.x, opt, len(table))
 
@@ -408,11 +431,12 @@ def best_approximation(table: SampleTable, options: FitOptions | None = None) ->
     from scipy.optimize import minimize, minimize_scalar
 
     opt = options or FitOptions()
-    _model, _channels, space, lik = _setup(table, opt)
+    setup = fit_setup(table, opt)
+    space, lik = setup.space, _likelihood(table, opt, setup)
     lsq = fit_least_squares(
         lik, weighting=opt.weighting, loss=opt.loss, n_starts=opt.n_starts, seed=opt.seed
     )
-    lik.set_discrepancy_reference(lsq.x)
+    lik = lik.frozen_at(lsq.x, angles=False)
     x = _best_discrepancy(lik, lsq.x)
     lo, hi = space.bounds
     disc = [i for i, s in enumerate(space.specs) if s.base == DISCREPANCY[0]]
@@ -512,13 +536,7 @@ def _run_ensembles(lik, lsq, x_lsq, opt: FitOptions, rng, h5, progress: bool, co
     fingerprint = _fingerprint(
         lik, opt.model, dict(opt.model_options), opt.likelihood, opt.nu, opt.censor
     )
-    mcmc = McmcOptions(
-        walkers=opt.walkers,
-        max_steps=opt.steps,
-        time_budget_s=opt.time_budget_s,
-        target_ess=opt.target_ess,
-        moves=opt.moves,
-    )
+    mcmc = opt.mcmc
     log_prob, x0 = lik.log_prob, x_lsq
     if coords is not None:
         log_prob, x0, (lo, hi) = (

@@ -6,8 +6,8 @@ Model (per sample j, channel c; f̂ = model f_r, f the measurement, σ its 1-σ 
   v_j = σ_j² + (s f̃_j)², where s ≥ 0 is the optional fitted fractional model discrepancy
   (real materials never follow a model exactly; without s the posterior is overconfident).
   f̃_j is the value the model error is a fraction of. By default it is the prediction f̂_j(θ);
-  `set_discrepancy_reference(θ₀)` freezes it at f̂_j(θ₀) (fit_samples uses the least-squares
-  optimum). Why freeze: with f̂(θ) in v, over-predicting a sample costs at most
+  `frozen_at(θ₀)` gives the likelihood with it frozen at f̂_j(θ₀) (fit_samples uses the
+  least-squares optimum). Why freeze: with f̂(θ) in v, over-predicting a sample costs at most
   ≈ 1/(2s²) + ln f̂ while under-predicting costs without bound, so a mismatched model learns to
   overshoot wherever few samples sit (the real-materials study found held-out errors of
   1000s of % from that). Why not the measured f_j: σ would then correlate with each sample's
@@ -51,6 +51,7 @@ stay float64.
 
 from __future__ import annotations
 
+import copy
 import json
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -242,7 +243,7 @@ class Likelihood:
         #: The model's precision in :meth:`predict` ("float64", or "float32": choose_precision).
         self.precision = "float64"
         self.precision_reason = "float64 by default"
-        self._angle_ref: tuple | None = None  # arm-zero linearisation (set_angle_reference)
+        self._angle_ref: tuple | None = None  # arm-zero linearisation (frozen_at)
         # Constant of the Student-t density, precomputed once.
         self._t_const = float(
             gammaln((self.nu + 1) / 2) - gammaln(self.nu / 2) - 0.5 * np.log(self.nu * np.pi)
@@ -294,12 +295,25 @@ class Likelihood:
         finally:
             self.precision = "float64"
 
-    def set_discrepancy_reference(self, theta: np.ndarray | None) -> None:
-        """Freeze the discrepancy's reference f̃ at the model's prediction for θ (D,), or go back
-        to f̃ = f̂(θ) with None. Where the model is not finite there, the measured |f| is used."""
-        if theta is None:
-            self._f_ref = None
-            return
+    def frozen_at(self, theta: np.ndarray, *, angles: bool = True) -> Likelihood:
+        """This likelihood with its references frozen at θ₀ (D,), as a fit samples it: the
+        discrepancy's reference f̃ at the model's prediction there, then (``angles``) the arms'
+        zero errors linearised about θ₀'s. A new object; this one is unchanged (its f̃ stays the
+        prediction f̂(θ), the arms exact)."""
+        frozen = copy.copy(self)
+        frozen._freeze_discrepancy(theta)
+        if angles:
+            frozen._freeze_angles(theta)
+        return frozen
+
+    @property
+    def discrepancy_reference(self) -> list[np.ndarray] | None:
+        """The frozen f̃ per channel (each (N_c,)), or None when f̃ is the prediction itself."""
+        return self._f_ref
+
+    def _freeze_discrepancy(self, theta: np.ndarray) -> None:
+        """Freeze the discrepancy's reference f̃ at the model's prediction for θ (D,). Where the
+        model is not finite there, the measured |f| is used."""
         fms = self.predict(np.atleast_2d(np.asarray(theta, dtype=np.float64)))
         self._f_ref = [
             np.where(np.isfinite(fm[0]), np.abs(fm[0]), np.abs(d.f))
@@ -338,17 +352,14 @@ class Likelihood:
             out.append(fm if scale is None else fm * scale[:, None])
         return out
 
-    def set_angle_reference(self, theta: np.ndarray | None) -> None:
-        """Linearise the arms' zero errors about θ₀'s (the MCMC's hot path; None: exact).
+    def _freeze_angles(self, theta: np.ndarray) -> None:
+        """Linearise the arms' zero errors about θ₀'s (the MCMC's hot path).
 
         f(p, δ) = f(p, δ₀) · (1 + Σ_k (δ_k − δ₀_k) ∂ln f/∂δ_k), the log-derivatives taken
         once at (p₀, δ₀) by central differences. Exact at δ₀ and, the model being smooth in
         the angles, off by ½ ∂²f/∂δ² Δδ² + ∂²ln f/∂δ∂p Δδ Δp: with Δδ a posterior's width
         around a least-squares δ₀ (≈ 0.01°, at most the prior's 0.2–0.3°) and a lobe of width
         m, of relative size Δδ²/m² ≤ 1e-4 at m = 0.05 — far below a sample's noise."""
-        if theta is None:
-            self._angle_ref = None
-            return
         x0 = np.atleast_2d(np.asarray(theta, dtype=np.float64))
         natural = self.space.natural_dict(x0)
         angles = {n: to_si(n, natural[n]) for n in ANGLE_NUISANCES if n in natural}

@@ -148,8 +148,9 @@ def _weights(lik, x: np.ndarray, s: float):
     f_hat = _predict_exact(lik, x)
     f = np.concatenate([d.f[d.exact] for d in lik.data])
     sig2 = np.concatenate([d.sigma2[d.exact] for d in lik.data])
-    if lik._f_ref is not None:
-        ref = np.concatenate([r[d.exact] for d, r in zip(lik.data, lik._f_ref, strict=True)])
+    frozen = lik.discrepancy_reference
+    if frozen is not None:
+        ref = np.concatenate([r[d.exact] for d, r in zip(lik.data, frozen, strict=True)])
     else:
         ref = np.abs(f_hat)
     return f_hat, ref, f, sig2 + (s * ref) ** 2

@@ -49,13 +49,14 @@ def texel_seed(seed: int, texel: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(texel)]).generate_state(1)[0])
 
 
-def texel_fit_options(base: FitOptions | None = None, **changes) -> FitOptions:
+def texel_fit_options(
+    base: FitOptions | None = None, *, walkers: int = 16, steps: int = 600, n_starts: int = 3
+) -> FitOptions:
     """FitOptions for one texel: 16 walkers, ≤ 600 steps, 3 least-squares starts (a texel's
     posterior is near-Gaussian and the map has thousands of them), no wall-time budget (a
-    budget would make the result depend on the machine). `changes` override."""
-    opt = base or FitOptions()
-    short = {"walkers": 16, "steps": 600, "n_starts": 3, "time_budget_s": None}
-    return opt.replace(**{**short, **changes})
+    budget would make the result depend on the machine)."""
+    opt = (base or FitOptions()).replace(n_starts=n_starts)
+    return opt.with_mcmc(walkers=walkers, max_steps=steps, time_budget_s=None)
 
 
 def texel_groups(table: SampleTable) -> dict[int, np.ndarray]:

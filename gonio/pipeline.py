@@ -543,12 +543,12 @@ def demo_fit_options(quick: bool):
     several σ at the simulator's noise level, so the truth would fall outside the 95% interval.
     """
     from fitting.fit import FitOptions
+    from fitting.mcmc import McmcOptions
 
     return FitOptions(
         model="torrance-sparrow",
         model_options={"fresnel": "none", "shadowing": "smith-rational"},
         shared=("m",),
-        walkers=32,
-        steps=1500 if quick else 4000,
+        mcmc=McmcOptions(walkers=32, max_steps=1500 if quick else 4000),
         seed=1,
     )

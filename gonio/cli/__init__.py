@@ -34,7 +34,7 @@ def _say(line: str) -> None:
     pointed file descriptor 2 elsewhere for a moment in another thread (calibration.decode
     collects what C decoders print), and that must not swallow the one line the user gets."""
     sys.stderr.flush()
-    if _STDERR_FD is None:
+    if _STDERR_FD is None or sys.stderr is not sys.__stderr__:  # Python-level redirection
         sys.stderr.write(line)
         return
     os.write(_STDERR_FD, line.encode("utf-8", "replace"))

@@ -109,27 +109,29 @@ def fit(
         model, fix, priors, (option, shared, compare_shared), (likelihood, walkers, steps)
     )
     chans = [c.strip() for c in channels.split(",")] if channels else None
-    _check_spaces(table, cands, (fixed, prior_cfg, chans, compare_shared), priors)
-    _show_flag_counts(table, chans, drop_flagged)
     from fitting.fit import FitOptions
+    from fitting.mcmc import McmcOptions
 
     base = FitOptions(
         model=model,
         fix=fixed,
         priors=prior_cfg,
         channels=chans,
-        mcmc=not no_mcmc,
-        walkers=walkers,
-        steps=steps,
-        time_budget_s=time_budget,
+        mcmc=None if no_mcmc else McmcOptions(walkers, steps, time_budget),
         seed=seed,
         likelihood=likelihood,
         censor=not drop_flagged,
         binned_source=samples if "gonio.binned" in table.metadata else None,
         widen_for_mismatch=not no_widen,
     )
+    setups = _check_setups(table, cands, base, compare_shared, priors)
+    _show_flag_counts(table, chans, drop_flagged)
     _run_fits(
-        table, base, cands, (compare_shared, accept_poor_fit), Path(out_dir or samples.parent)
+        table,
+        (base, setups),
+        cands,
+        (compare_shared, accept_poor_fit),
+        Path(out_dir or samples.parent),
     )
 
 
@@ -152,13 +154,15 @@ def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):
     return table
 
 
-def _run_fits(table, base, cands, flags, dest: Path) -> None:
-    """One fit (or a ranked comparison), each shown with its verdicts; exit 3 on a fail."""
-    from fitting.compare import run_comparison
+def _run_fits(table, fitting_plan, cands, flags, dest: Path) -> None:
+    """One fit (or a ranked comparison), each shown with its verdicts; exit 3 on a fail.
+    ``fitting_plan``: the base FitOptions and each candidate's checked setup."""
+    from fitting.compare import candidate_options, run_comparison
     from fitting.fit import fit_samples
     from fitting.priors import PriorsError
     from gonio.errors import UserError
 
+    base, setups = fitting_plan
     compare_shared, accept_poor_fit = flags
     results = {}
 
@@ -169,11 +173,14 @@ def _run_fits(table, base, cands, flags, dest: Path) -> None:
     try:
         if len(cands) == 1 and not compare_shared:
             c = cands[0]
-            opts = base.replace(model_options=dict(c.options), shared=c.shared)
-            show(c, fit_samples(table, opts, out_dir=dest, progress=True))
+            opts = candidate_options(base, c, comparison=False)
+            fit = fit_samples(table, opts, out_dir=dest, progress=True, setup=setups[c.label])
+            show(c, fit)
             verdict_exit(results[c.label].verdicts, accept_poor_fit)
             return
-        ranked, _ = run_comparison(table, cands, base, out_dir=dest, on_fit=show, progress=True)
+        ranked, _ = run_comparison(
+            table, cands, base, out_dir=dest, on_fit=show, progress=True, setups=setups
+        )
     except PriorsError as exc:
         raise UserError(str(exc).splitlines()[0]) from None
     _show_comparison(ranked, dest)
@@ -181,33 +188,30 @@ def _run_fits(table, base, cands, flags, dest: Path) -> None:
     verdict_exit(results[ranked[0].label].verdicts, accept_poor_fit, ranked[0].label)
 
 
-def _check_spaces(table, cands, space_args, priors_path) -> None:
-    """Build each candidate's parameter space before anything is printed or written, so a
-    priors file, --fix or --shared that does not suit the model is the command's only line."""
-    from fitting import models
-    from fitting.compare import restrict
-    from fitting.priors import ParameterSpace, PriorsError
+def _check_setups(table, cands, base, compare_shared: bool, priors_path) -> dict:
+    """Each candidate's fit setup (fitting.fit.fit_setup: model, channels, parameter space),
+    built before anything is printed or written — so a priors file, --channels, --fix or
+    --shared that does not suit the model is the command's only line — and then used by its
+    fit. Returns {label: FitSetup}."""
+    from fitting.compare import candidate_options
+    from fitting.fit import fit_setup
+    from fitting.priors import PriorsError
     from gonio.errors import UserError
 
-    fixed, prior_cfg, chans, compare_shared = space_args
     comparison = len(cands) > 1 or compare_shared  # the run_comparison path of _run_fits
-    present = table.channels
-    missing = [c for c in chans or () if c not in present]
-    if missing:
-        raise UserError(
-            f"--channels {', '.join(missing)}: not in the samples (present: {', '.join(present)})"
-        )
+    setups = {}
     for c in cands:
-        model = models.get(c.model, **dict(c.options))
-        # A comparison reduces one --fix / priors file to the names each model knows, as
-        # fitting.compare.run_comparison does; a single fit takes them as given.
-        fx, pr = restrict(model, fixed, prior_cfg) if comparison else (fixed, prior_cfg)
         try:
-            ParameterSpace.build(model, chans or present, shared=c.shared, fix=fx, priors=pr)
+            setups[c.label] = fit_setup(table, candidate_options(base, c, comparison=comparison))
         except (PriorsError, ValueError) as exc:
             line = str(exc).splitlines()[0]
+            if line.startswith("channel(s) "):  # as the option is named on this command line
+                line = "--channels " + line.removeprefix("channel(s) ").replace(
+                    " not in the samples", ": not in the samples", 1
+                )
             where = f"{priors_path}: " if priors_path is not None and "prior" in line else ""
             raise UserError(f"{where}{line}") from None
+    return setups
 
 
 def _show_flag_counts(table, chans, drop_flagged: bool) -> None:

@@ -290,6 +290,7 @@ def _one_run(spec: RunSpec, seed: int, base, rig, cfg: StudyConfig, run_dir: Pat
     """One configuration and seed: acquire → calibrate → fit, and a row per parameter."""
     from calibration.reduce import ReduceOptions
     from fitting.fit import FitOptions
+    from fitting.mcmc import McmcOptions
     from gonio.backends import planned_spp
     from gonio.backends import scene_truth as reference_parameters
     from gonio.pipeline import AcquireSpec, SpineSpec, run_spine
@@ -304,8 +305,7 @@ def _one_run(spec: RunSpec, seed: int, base, rig, cfg: StudyConfig, run_dir: Pat
         model="torrance-sparrow",
         model_options={"fresnel": "none", "shadowing": "smith-rational"},
         channels=[cfg.channel],
-        walkers=cfg.walkers,
-        steps=spec.mcmc_steps,
+        mcmc=McmcOptions(walkers=cfg.walkers, max_steps=spec.mcmc_steps),
         seed=seed,
         n_starts=3,
     )

@@ -422,7 +422,7 @@ def _fit_model(ctx: _Scoring, ms: ModelSpec, fit_table):
     from fitting.compare import score_fit
     from fitting.fit import FitOptions, fit_samples
     from fitting.heldout import heldout_errors
-    from fitting.mcmc import ConvergenceTarget, convergence_verdict
+    from fitting.mcmc import ConvergenceTarget, McmcOptions, convergence_verdict
 
     cfg, grid = ctx.cfg, ctx.grid
     t1 = time.perf_counter()
@@ -433,8 +433,7 @@ def _fit_model(ctx: _Scoring, ms: ModelSpec, fit_table):
             model_options=ms.options,
             channels=list(cfg.channels),
             shared=ms.shared,
-            walkers=cfg.walkers,
-            steps=cfg.max_steps,
+            mcmc=McmcOptions(walkers=cfg.walkers, max_steps=cfg.max_steps),
             seed=cfg.seed,
             n_starts=cfg.n_starts,
             discrepancy=True,

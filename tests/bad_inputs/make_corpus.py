@@ -266,6 +266,7 @@ def _garbage(n: int, seed: int) -> bytes:
 def write_runs(work: Path) -> None:
     from calibration.reduce import ReduceOptions, reduce_run
     from fitting.fit import FitOptions, fit_samples
+    from fitting.mcmc import McmcOptions
     from simulator.scene import load_scene
 
     runs = HERE / "run_dirs"
@@ -340,7 +341,9 @@ def write_runs(work: Path) -> None:
     shutil.copytree(exr, fitted)
     table = reduce_run(fitted, ReduceOptions(bin_px=8, mode="center"))
     fit_samples(
-        table, FitOptions(model="lambert", walkers=8, steps=40, n_starts=1, seed=0), out_dir=fitted
+        table,
+        FitOptions(model="lambert", mcmc=McmcOptions(walkers=8, max_steps=40), n_starts=1, seed=0),
+        out_dir=fitted,
     )
     _fix_wall_times(fitted / "fit-lambert.json")
     (fitted / "samples.parquet").write_bytes(_strip_parquet_meta(fitted / "samples.parquet"))

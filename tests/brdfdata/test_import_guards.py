@@ -124,7 +124,7 @@ def test_degrees_accepted_with_angles_deg(tmp_path) -> None:
     table = read_csv_table(csv, CsvOptions(angles="deg"))
     np.testing.assert_allclose(table.theta_o, cols["theta_o"], rtol=1e-15)
     fit = fit_samples(
-        check_samples(table, "deg.csv"), FitOptions(model="lambert", mcmc=False, discrepancy=False)
+        check_samples(table, "deg.csv"), FitOptions(model="lambert", mcmc=None, discrepancy=False)
     )
     assert abs(fit.parameters["kd_Y"]["median"] - KD) < 0.01
     with pytest.raises(GuardError, match="looks like degrees"):
@@ -195,7 +195,7 @@ def test_merge_duplicates_matches_the_deduplicated_table(tmp_path, monkeypatch, 
         # Plain least squares (loss "linear"): the Gaussian likelihood the equivalence is about;
         # the default soft_l1 loss down-weights large residuals and is not additive that way.
         fit = fit_samples(
-            table, FitOptions(model="lambert", mcmc=False, discrepancy=False, loss="linear", seed=1)
+            table, FitOptions(model="lambert", mcmc=None, discrepancy=False, loss="linear", seed=1)
         )
         p = fit.parameters["kd_Y"]
         return np.array([p["map"], p["p2.5"], p["p16"], p["median"], p["p84"], p["p97.5"]])

@@ -28,6 +28,7 @@ from brdfdata.samples import Flags
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting import models
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from gonio.pipeline import AcquireSpec, acquire
 from tests.support.paths import REPO
 
@@ -158,8 +159,7 @@ def test_anisotropic_parameters_recovered_through_the_rig(run_table):
             model="torrance-sparrow-anisotropic",
             model_options=OPTIONS,
             shared=("alpha_x", "alpha_y", "phi0"),
-            steps=1500,
-            walkers=32,
+            mcmc=McmcOptions(max_steps=1500, walkers=32),
             seed=5,
         ),
     )

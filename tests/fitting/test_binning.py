@@ -108,7 +108,7 @@ def test_binning_moves_the_posterior_by_less_than_its_curvature_bound(tmp_path, 
             model_options=OPTIONS,
             shared=["m"],
             fix=fix,
-            mcmc=False,
+            mcmc=None,
             discrepancy=False,
             n_starts=2,
             loss="linear",  # the Gaussian optimum, as the unbinned fits above
@@ -272,7 +272,7 @@ def test_a_binned_fit_of_merged_duplicates_rereads_the_file_without_refusing_it(
     table.extra = {}  # the repeats are now duplicated rows, accepted only when merged
     path = write_samples(tmp_path / "dup.parquet", table)
     binned, _ = read_binned(path, BinOptions(width_deg=0.05), merge_duplicates=True)
-    opts = FitOptions(model="lambert", mcmc=False, n_starts=1, binned_source=path)
+    opts = FitOptions(model="lambert", mcmc=None, n_starts=1, binned_source=path)
     fit = fit_samples(binned, opts)
     assert fit.diagnostics["binning"]["corrected"]
     write_samples(path, table.select(np.arange(len(table)) > 0))  # another file, same path

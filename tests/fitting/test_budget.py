@@ -59,7 +59,7 @@ def _repeat(table, f_true, r: int, quadrature: bool):
         sig, meta = sigma_stat, {"gonio.budget": _budget(SCALE_SIGMA)}
     t = dataclasses.replace(table, f=f, sigma=sig, metadata={**table.metadata, **meta})
     return fit_samples(t, FitOptions(model="torrance-sparrow", model_options=OPTIONS,
-                                     mcmc=False, n_starts=1, seed=r))  # fmt: skip
+                                     mcmc=None, n_starts=1, seed=r))  # fmt: skip
 
 
 def test_amplitudes_are_found_and_checked() -> None:
@@ -104,10 +104,10 @@ def test_a_scaled_table_scales_only_the_amplitudes(truth_table) -> None:
     scaled optimum; 1e-4 is the optimiser's tolerance)."""
     table, f_true, _ = truth_table
     a = fit_samples(table, FitOptions(model="torrance-sparrow", model_options=OPTIONS,
-                                      mcmc=False, n_starts=1, seed=1))  # fmt: skip
+                                      mcmc=None, n_starts=1, seed=1))  # fmt: skip
     scaled = dataclasses.replace(table, f=1.05 * table.f, sigma=1.05 * table.sigma)
     b = fit_samples(scaled, FitOptions(model="torrance-sparrow", model_options=OPTIONS,
-                                       mcmc=False, n_starts=1, seed=1))  # fmt: skip
+                                       mcmc=None, n_starts=1, seed=1))  # fmt: skip
     for name in ("kd_G", "ks_G"):
         assert b.value(name, "map") / a.value(name, "map") == pytest.approx(1.05, rel=1e-4)
     assert b.value("m", "map") == pytest.approx(a.value("m", "map"), rel=1e-4)

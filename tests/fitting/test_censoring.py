@@ -23,6 +23,7 @@ import numpy as np
 from brdfdata.directions import grid_direction_pairs
 from brdfdata.samples import Flags
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from simulator.scene import load_scene
 from simulator.truth import direct_samples, reference_parameters
 from tests.support.paths import TESTS
@@ -61,8 +62,7 @@ def test_dark_conductor_recovered_with_censoring_by_default() -> None:
                 model="torrance-sparrow",
                 model_options={"fresnel": "none", "shadowing": "smith-rational"},
                 channels=["R"],
-                walkers=16,
-                steps=1500,
+                mcmc=McmcOptions(walkers=16, max_steps=1500),
                 seed=seed,
                 n_starts=2,
             ),
@@ -90,9 +90,20 @@ def test_a_chain_of_the_old_default_is_continued_or_replaced_with_a_note(tmp_pat
     f = 0.5 / np.pi + 0.005 * rng.standard_normal(n)
     cols = [rng.uniform(0, 1.2, n), np.zeros(n), rng.uniform(0, 1.2, n), rng.uniform(0, 6, n)]
     table = SampleTable(*cols, np.full(n, "R"), f, np.full(n, 0.005), np.zeros(n, np.int32))
-    old = FitOptions(model="lambert", walkers=8, steps=100, seed=1, censor=False, moves="stretch")
+    old = FitOptions(
+        model="lambert",
+        mcmc=McmcOptions(walkers=8, max_steps=100, moves="stretch"),
+        seed=1,
+        censor=False,
+    )
     fit_samples(table, old, out_dir=tmp_path / "clean")
-    again = fit_samples(table, old.replace(censor=True, steps=150), out_dir=tmp_path / "clean")
+    again = fit_samples(
+        table,
+        old.replace(
+            censor=True,
+        ).with_mcmc(max_steps=150),
+        out_dir=tmp_path / "clean",
+    )
     assert again.extras["mcmc"].iterations == 150 and again.extras["notes"] == []  # continued
     table.flags[:10] = Flags.DARK
     fit_samples(table, old, out_dir=tmp_path / "flagged")

@@ -20,6 +20,7 @@ import numpy as np
 from acquisition.config import PlanConfig, load_rig
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from gonio.pipeline import AcquireSpec, acquire
 from simulator.scene import load_scene
 from simulator.truth import reference_parameters
@@ -56,8 +57,7 @@ def _one_repeat(k: int) -> dict[str, tuple[bool, bool]]:
             model="torrance-sparrow",
             model_options={"fresnel": "none", "shadowing": "smith-rational"},
             channels=["G"],
-            walkers=24,
-            steps=600,
+            mcmc=McmcOptions(walkers=24, max_steps=600),
             seed=k,
             n_starts=2,
         ),

@@ -85,7 +85,7 @@ def _fit(material, options: dict, fix: dict, seed: int = 0):
     table, _ = direct_samples(material, wi, wo, rel_sigma=0.01, floor_sr=1e-3, rng=seed)
     return fit_samples(
         table,
-        FitOptions(model="torrance-sparrow", model_options=options, fix=fix, mcmc=False, seed=seed),
+        FitOptions(model="torrance-sparrow", model_options=options, fix=fix, mcmc=None, seed=seed),
     )
 
 

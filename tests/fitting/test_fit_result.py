@@ -12,6 +12,7 @@ import pytest
 from brdfdata.samples import Flags, SampleTable
 from fitting import models
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from fitting.priors import ParameterSpace
 from fitting.result import FitResultError, read_fit
 
@@ -58,7 +59,9 @@ def test_json_contract_and_roundtrip(tmp_path):
     rng = np.random.default_rng(0)
     table = lambert_table(rng)
     res = fit_samples(
-        table, FitOptions(model="lambert", steps=600, walkers=16, seed=1), out_dir=tmp_path
+        table,
+        FitOptions(model="lambert", mcmc=McmcOptions(max_steps=600, walkers=16), seed=1),
+        out_dir=tmp_path,
     )
     path = tmp_path / "fit-lambert.json"
     assert path.exists() and (tmp_path / "fit-lambert.h5").exists()
@@ -99,12 +102,14 @@ def test_json_contract_and_roundtrip(tmp_path):
 def test_laplace_without_mcmc_and_discrepancy_reports_mismatch():
     rng = np.random.default_rng(1)
     table = lambert_table(rng, n=400, mismatch=0.2, rel_noise=0.001)
-    res = fit_samples(table, FitOptions(model="lambert", mcmc=True, steps=1500, walkers=16, seed=2))
+    res = fit_samples(
+        table, FitOptions(model="lambert", mcmc=McmcOptions(max_steps=1500, walkers=16), seed=2)
+    )
     # The fitted fractional discrepancy must report the 0.2/√2 ≈ 0.141 RMS mismatch; its
     # ML estimate has relative sd ≈ 1/√(2n) ≈ 2.5%, so ±15% is a wide but failing band.
     s = res.parameters["discrepancy"]["median"]
     assert s == pytest.approx(0.2 / np.sqrt(2), rel=0.15)
-    lap = fit_samples(table, FitOptions(model="lambert", mcmc=False, discrepancy=False, seed=2))
+    lap = fit_samples(table, FitOptions(model="lambert", mcmc=None, discrepancy=False, seed=2))
     assert lap.diagnostics["stop_reason"] == "no_mcmc" and lap.diagnostics["converged"] is False
     p = lap.parameters["kd_R"]
     # Without the discrepancy term the Laplace interval is the overconfident one: far
@@ -113,7 +118,7 @@ def test_laplace_without_mcmc_and_discrepancy_reports_mismatch():
     assert (p["p84"] - p["p16"]) < 0.2 * (q["p84"] - q["p16"])
     # With the discrepancy on, the Laplace interval is inflated by χ²/dof and lands near the
     # MCMC one (both describe ~14% scatter per sample; weights differ slightly: factor 2).
-    lap2 = fit_samples(table, FitOptions(model="lambert", mcmc=False, seed=2))
+    lap2 = fit_samples(table, FitOptions(model="lambert", mcmc=None, seed=2))
     w2 = lap2.parameters["kd_R"]["p84"] - lap2.parameters["kd_R"]["p16"]
     assert 0.5 < w2 / (q["p84"] - q["p16"]) < 2.0
 
@@ -147,7 +152,10 @@ def test_censored_and_student_t_fits_run():
     flags[np.argsort(table.f)[-15:]] = Flags.SATURATED
     table.flags = flags
     for kw in ({"censor": True}, {"likelihood": "student-t"}):
-        res = fit_samples(table, FitOptions(model="lambert", steps=400, walkers=16, seed=4, **kw))
+        res = fit_samples(
+            table,
+            FitOptions(model="lambert", mcmc=McmcOptions(max_steps=400, walkers=16), seed=4, **kw),
+        )
         p = res.parameters["kd_R"]
         assert abs(p["median"] - 0.6) < 5 * (p["p84"] - p["p16"]) / 2, (kw, p)
 
@@ -170,7 +178,9 @@ def test_two_ensembles_rhat_and_time_budget(tmp_path):
     table = lambert_table(rng, n=100)
     res = fit_samples(
         table,
-        FitOptions(model="lambert", steps=800, walkers=16, seed=6, ensembles=2),
+        FitOptions(
+            model="lambert", mcmc=McmcOptions(max_steps=800, walkers=16), seed=6, ensembles=2
+        ),
         out_dir=tmp_path,
     )
     d = res.to_dict()["diagnostics"]
@@ -181,7 +191,12 @@ def test_two_ensembles_rhat_and_time_budget(tmp_path):
     with h5py.File(tmp_path / "fit-lambert.h5") as h5:
         assert {"mcmc", "mcmc_1"} <= set(h5)
     quick = fit_samples(
-        table, FitOptions(model="lambert", steps=100_000, walkers=16, seed=6, time_budget_s=0.0)
+        table,
+        FitOptions(
+            model="lambert",
+            mcmc=McmcOptions(max_steps=100_000, walkers=16, time_budget_s=0.0),
+            seed=6,
+        ),
     )
     assert quick.diagnostics["stop_reason"] == "time_budget"
     assert quick.diagnostics["converged"] is False
@@ -190,15 +205,19 @@ def test_two_ensembles_rhat_and_time_budget(tmp_path):
 def test_fit_resume_continues_only_the_same_problem(tmp_path):
     rng = np.random.default_rng(7)
     table = lambert_table(rng, n=80)
-    base = FitOptions(model="lambert", walkers=16, seed=8, moves="stretch")
-    fit_samples(table, base.replace(steps=200), out_dir=tmp_path)
+    base = FitOptions(
+        model="lambert",
+        mcmc=McmcOptions(walkers=16, moves="stretch"),
+        seed=8,
+    )
+    fit_samples(table, base.with_mcmc(max_steps=200), out_dir=tmp_path)
     first = emcee.backends.HDFBackend(str(tmp_path / "fit-lambert.h5"), read_only=True)
     chain0 = first.get_chain()
-    second = fit_samples(table, base.replace(steps=400), out_dir=tmp_path)
+    second = fit_samples(table, base.with_mcmc(max_steps=400), out_dir=tmp_path)
     after = emcee.backends.HDFBackend(str(tmp_path / "fit-lambert.h5"), read_only=True)
     assert after.iteration == second.extras["mcmc"].iterations == 400
     np.testing.assert_array_equal(after.get_chain()[:200], chain0)
     # Different data → different fingerprint → a fresh chain, not a continuation.
     other = lambert_table(np.random.default_rng(9), n=80)
-    third = fit_samples(other, base.replace(steps=150), out_dir=tmp_path)
+    third = fit_samples(other, base.with_mcmc(max_steps=150), out_dir=tmp_path)
     assert third.extras["mcmc"].iterations == 150

@@ -81,8 +81,8 @@ def test_frozen_discrepancy_reference_matches_scipy_and_penalises_overshoot():
     space = _space(model, ["R", "G"], discrepancy=True)
     s = 0.07
     ref_kd = {"R": 0.40, "G": 0.30}  # where the reference is frozen (an LSQ optimum, say)
-    gauss = Likelihood(model, t, space)
-    gauss.set_discrepancy_reference(np.array([ref_kd["R"], ref_kd["G"], np.log(s)]))
+    floating_lik = Likelihood(model, t, space)
+    gauss = floating_lik.frozen_at(np.array([ref_kd["R"], ref_kd["G"], np.log(s)]))
     ref = np.array([ref_kd[c] / np.pi for c in t.channel])
     for kd in ({"R": 0.41, "G": 0.27}, {"R": 1.0, "G": 0.95}):
         mu = np.array([kd[c] / np.pi for c in t.channel])
@@ -96,8 +96,7 @@ def test_frozen_discrepancy_reference_matches_scipy_and_penalises_overshoot():
     # caps the cost near N·(1/(2s²)) + Σ ln f̂ — far cheaper.
     over = np.array([1.0, 0.95, np.log(s)])
     frozen = gauss.log_prob(over)
-    gauss.set_discrepancy_reference(None)
-    floating = gauss.log_prob(over)
+    floating = floating_lik.log_prob(over)  # frozen_at left the original as it was
     mu = np.array([{"R": 1.0, "G": 0.95}[c] / np.pi for c in t.channel])
     assert floating == pytest.approx(
         stats.norm.logpdf(t.f, mu, np.sqrt(t.sigma**2 + (s * mu) ** 2)).sum(), rel=1e-11

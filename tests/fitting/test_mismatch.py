@@ -42,6 +42,7 @@ from brdfdata.data_paths import find_data
 from brdfdata.directions import normalize, vector_to_spherical
 from brdfdata.samples import SampleTable
 from fitting.fit import FitOptions, best_approximation, fit_samples
+from fitting.mcmc import McmcOptions
 from fitting.mismatch import (
     OTHER_REGIONS,
     REGION_MIN_SAMPLES,
@@ -72,8 +73,7 @@ OPTIONS = FitOptions(
     # walkers × 2000 steps gave the same coverage, repeat for repeat, on the paper; 800 steps
     # with 4 starts gave the same as these 400 with 2 to within one repeat per parameter
     # (widened 0.93–1.00 both; sampler's own 0.60–0.93 and 0.63–0.93).
-    walkers=16,
-    steps=400,
+    mcmc=McmcOptions(walkers=16, max_steps=400),
     n_starts=2,
 )
 MATERIALS = ("roughplastic", "paper", "colodur")
@@ -302,13 +302,15 @@ def test_sandwich_equals_the_one_parameter_formula() -> None:
     rng = np.random.default_rng(3)
     fit = fit_samples(
         _table(wi, wo, f + sigma * rng.standard_normal(f.size), sigma),
-        OPTIONS.replace(fix={**lobe, "discrepancy": 0.05}, walkers=16, steps=2000, seed=1),
+        OPTIONS.replace(fix={**lobe, "discrepancy": 0.05}, seed=1).with_mcmc(
+            walkers=16, max_steps=2000
+        ),
     )
     lik, space = fit.extras["likelihood"], fit.extras["space"]
     raw = fit.extras["raw_draws"]
     assert space.names == ["kd_G"]
     kd = float(np.median(raw[:, 0]))
-    v = sigma**2 + (0.05 * lik._f_ref[0]) ** 2
+    v = sigma**2 + (0.05 * lik.discrepancy_reference[0]) ** 2
     g = np.full(f.size, 1.0 / np.pi)
     r = lik.data[0].f - ts.evaluate({"kd": kd, **lobe}, wi, wo)
     info_h = np.sum(g * g / v)

@@ -19,6 +19,7 @@ from brdfdata.samples import Flags
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting import models
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from fitting.ngan import (
     COOK_TORRANCE_OPTIONS,
     NGAN_MODELS,
@@ -174,7 +175,10 @@ def test_teflon_fit_recovers_ngan_roughness(tmp_path) -> None:
     fit = fit_samples(
         table,
         FitOptions(
-            model="torrance-sparrow", model_options=COOK_TORRANCE_OPTIONS, steps=600, seed=3
+            model="torrance-sparrow",
+            model_options=COOK_TORRANCE_OPTIONS,
+            mcmc=McmcOptions(max_steps=600),
+            seed=3,
         ),
     )
     p = fit.parameters

@@ -39,6 +39,7 @@ from conftest import data_file
 
 from brdfdata.directions import isotropic_gonio_directions
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from fitting.ngan import COOK_TORRANCE_OPTIONS, ngan_cook_torrance_parameters, read_ngan_fits
 from simulator.scene import load_scene
 from simulator.truth import direct_samples
@@ -77,7 +78,10 @@ def test_ngan_published_fit_recovered(name: str, configs) -> None:
         fit = fit_samples(
             table,
             FitOptions(
-                model="torrance-sparrow", model_options=COOK_TORRANCE_OPTIONS, steps=500, seed=seed
+                model="torrance-sparrow",
+                model_options=COOK_TORRANCE_OPTIONS,
+                mcmc=McmcOptions(max_steps=500),
+                seed=seed,
             ),
         )
         p = fit.parameters

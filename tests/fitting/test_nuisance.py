@@ -17,6 +17,7 @@ import pytest
 
 from brdfdata.directions import isotropic_gonio_directions, spherical_to_vector, vector_to_spherical
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from fitting.nuisance import shared_errors, shifted_directions
 from simulator.truth import direct_samples, material_reference_parameters
 from tests.support.blend import MATERIAL, OPTIONS  # the blend of the budget test
@@ -81,8 +82,8 @@ def test_a_shared_scale_is_marginalised_by_the_chain(truth_table) -> None:
     statistical part what the fit without a budget gives (within 25 %: two chains' sds); m,
     a shape parameter, gets no systematic part (< 10 % of its spread)."""
     table, _truth = truth_table
-    opt = FitOptions(model="torrance-sparrow", model_options=OPTIONS, walkers=24, steps=2000,
-                     n_starts=2, seed=1)  # fmt: skip
+    opt = FitOptions(model="torrance-sparrow", model_options=OPTIONS, n_starts=2, seed=1,
+                     mcmc=McmcOptions(walkers=24, max_steps=2000))  # fmt: skip
     budget = [{"component": "scale (test)", "type": "B", "relative_sigma": {"G": 0.02}}]
     with_budget = dataclasses.replace(
         table, metadata={**table.metadata, "gonio.budget": json.dumps(budget)}
@@ -146,7 +147,7 @@ def test_the_fit_recovers_the_arms_zero_errors_of_a_simulated_rig() -> None:
         acquire(run, AcquireSpec(rig=rig, plan=plan, scene=scene, progress=False, announce=False))
         table = reduce_run(run, ReduceOptions(bin_px=2, mode="center"))
     opt = FitOptions(model="torrance-sparrow", model_options=OPTIONS, channels=["G"],
-                     walkers=24, steps=600, n_starts=2, seed=0)  # fmt: skip
+                     mcmc=McmcOptions(walkers=24, max_steps=600), n_starts=2, seed=0)  # fmt: skip
     fit = fit_samples(table, opt)
     for axis, err in zeros.items():
         p = fit.parameters[f"{axis}_zero"]

@@ -31,6 +31,7 @@ import pytest
 
 from brdfdata.directions import isotropic_gonio_directions
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from simulator.scene import BlendMaterial, DiffuseMaterial, RoughConductorMaterial
 from simulator.truth import direct_samples, material_reference_parameters
 
@@ -98,7 +99,7 @@ def test_recovery(kind: str, m: float) -> None:
             model_options=OPTIONS,
             shared=["m"],
             fix=fix,
-            steps=400,
+            mcmc=McmcOptions(max_steps=400),
             seed=seed,
         ),
     )

@@ -26,6 +26,7 @@ import pytest
 from brdfdata.directions import isotropic_gonio_directions
 from fitting import models
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from simulator.scene import (
     BlendMaterial,
     DiffuseMaterial,
@@ -51,7 +52,7 @@ def _fit(material, seed: int):
             model_options=OPTIONS,
             shared=["m"],
             fix={"ior": ETA},
-            steps=400,
+            mcmc=McmcOptions(max_steps=400),
             seed=seed,
         ),
     )

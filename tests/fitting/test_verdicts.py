@@ -17,7 +17,7 @@ import pytest
 from brdfdata.directions import grid_direction_pairs
 from fitting import models
 from fitting.fit import FitOptions, fit_samples
-from fitting.mcmc import ConvergenceTarget, McmcResult, split_rhat
+from fitting.mcmc import ConvergenceTarget, McmcOptions, McmcResult, split_rhat
 from fitting.priors import ParameterSpec, PriorBound, PriorsConfig
 from fitting.verdicts import (
     VERDICT_NAMES,
@@ -166,7 +166,7 @@ def _verdicts(result) -> dict[str, dict]:
 def test_lambert_on_a_glossy_material_fails_chi2() -> None:
     wi, wo = _grid()
     table, _ = direct_samples(BLEND, wi, wo, rel_sigma=0.02, floor_sr=1e-3, rng=3, channels="R")
-    fit = fit_samples(table, FitOptions(model="lambert", channels=["R"], mcmc=False, seed=3))
+    fit = fit_samples(table, FitOptions(model="lambert", channels=["R"], mcmc=None, seed=3))
     v = _verdicts(fit)["chi2"]
     # A Lambertian misses the Beckmann lobe (peak f ≈ 1 sr⁻¹ over a 0.14 sr⁻¹ base) by many σ.
     assert v["status"] == "fail" and fit.goodness["chi2_red"] > 10, v
@@ -180,7 +180,9 @@ def test_discrepancy_piled_at_its_bound_fails() -> None:
     # The low floor keeps σ small next to s·f̃, so s is identified, not lost in the noise.
     lobe = RoughConductorMaterial(alpha=0.3, conductor="none")
     table, _ = direct_samples(lobe, wi, wo, rel_sigma=0.01, floor_sr=1e-4, rng=1, channels="R")
-    fit = fit_samples(table, FitOptions(model="lambert", channels=["R"], steps=1500, seed=1))
+    fit = fit_samples(
+        table, FitOptions(model="lambert", channels=["R"], mcmc=McmcOptions(max_steps=1500), seed=1)
+    )
     v = _verdicts(fit)["discrepancy"]
     assert v["status"] == "fail" and "piled at its prior bound 1" in v["reason"], v
     assert fit.parameters["discrepancy"]["p2.5"] > 0.9  # the whole 95 % interval at the edge
@@ -193,7 +195,10 @@ def test_parameter_at_a_prior_bound_is_named() -> None:
     # The prior stops kd at 0.5; Mitsuba's diffuse has ρ = 0.6, so the posterior piles there.
     priors = PriorsConfig(parameters={"kd": PriorBound(upper=0.5)})
     fit = fit_samples(
-        table, FitOptions(model="lambert", channels=["R"], priors=priors, steps=1500, seed=4)
+        table,
+        FitOptions(
+            model="lambert", channels=["R"], priors=priors, mcmc=McmcOptions(max_steps=1500), seed=4
+        ),
     )
     v = _verdicts(fit)["bounds"]
     assert v["status"] == "warning" and "kd_R at its upper bound 0.5" in v["reason"], v
@@ -273,8 +278,7 @@ def test_matched_model_with_a_long_chain_is_ok_everywhere() -> None:
             model="torrance-sparrow",
             model_options=TS_MITSUBA,
             channels=["R"],
-            walkers=32,
-            steps=8000,
+            mcmc=McmcOptions(walkers=32, max_steps=8000),
             seed=2,
             converge=ConvergenceTarget(),
         ),

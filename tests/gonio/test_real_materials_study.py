@@ -197,6 +197,7 @@ def test_chain_extension_reaches_the_convergence_thresholds() -> None:
     """A Lambert fit stopped after 50 steps does not meet R̂ < 1.01 and ESS ≥ 400; the
     continuation must, and its summary must be the percentiles of the longer chain."""
     from fitting.fit import FitOptions, fit_samples
+    from fitting.mcmc import McmcOptions
 
     rng = np.random.default_rng(5)
     n = 300
@@ -212,7 +213,10 @@ def test_chain_extension_reaches_the_convergence_thresholds() -> None:
         sigma=sigma,
         flags=np.zeros(n, dtype=np.int32),
     )
-    fit = fit_samples(table, FitOptions(model="lambert", walkers=12, steps=50, seed=2, n_starts=2))
+    fit = fit_samples(
+        table,
+        FitOptions(model="lambert", mcmc=McmcOptions(walkers=12, max_steps=50), seed=2, n_starts=2),
+    )
     before = convergence_verdict(fit.diagnostics["rhat"], fit.diagnostics["ess"])
     # ESS = (50 − 3τ)·12/τ < 400 for any τ ≥ 1.4 (emcee's τ on 2 parameters is ≫ that)
     assert not before["converged"]
@@ -231,8 +235,7 @@ def test_chain_extension_reaches_the_convergence_thresholds() -> None:
         table,
         FitOptions(
             model="lambert",
-            walkers=12,
-            steps=20000,
+            mcmc=McmcOptions(walkers=12, max_steps=20000),
             seed=2,
             n_starts=2,
             converge=ConvergenceTarget(rm.RHAT_MAX, rm.ESS_MIN),

@@ -17,6 +17,7 @@ from acquisition.config import PlanConfig
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting.compare import rank, score_fit, write_compare
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from gonio.pipeline import AcquireSpec, acquire, config_dir
 from gonio.report import write_report
 from tests.support.browser import artifacts_dir, check_page, screenshot
@@ -47,8 +48,7 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
             model="torrance-sparrow",
             model_options={"fresnel": "none", "shadowing": "smith-rational"},
             shared=("m",),
-            walkers=16,
-            steps=200,
+            mcmc=McmcOptions(walkers=16, max_steps=200),
             n_starts=2,
             seed=3,
         ),

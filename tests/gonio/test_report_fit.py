@@ -27,6 +27,7 @@ def imported_fit(tmp_path_factory):
     from brdfdata.formats.convert import ImportOptions, import_samples
     from brdfdata.samples import write_samples
     from fitting.fit import FitOptions, fit_samples
+    from fitting.mcmc import McmcOptions
 
     tmp = tmp_path_factory.mktemp("fitreport")
     grid = "theta_i=10:70:20,theta_o=0:80:10,phi_o=0:180:30"
@@ -34,7 +35,11 @@ def imported_fit(tmp_path_factory):
         "rgl", data_file("rgl_brdf/colodur_napoli_4f_rgb.bsdf"), ImportOptions(grid=grid)
     )
     samples = write_samples(tmp / "samples.parquet", table)
-    fit_samples(table, FitOptions(model="lambert", steps=120, walkers=8, seed=0), out_dir=tmp)
+    fit_samples(
+        table,
+        FitOptions(model="lambert", mcmc=McmcOptions(max_steps=120, walkers=8), seed=0),
+        out_dir=tmp,
+    )
     return samples, tmp / "fit-lambert.json"
 
 
@@ -102,7 +107,7 @@ def test_report_refuses_samples_the_fit_was_not_made_from(imported_fit, tmp_path
     samples, _ = imported_fit
     table = read_samples(samples)
     assert table.source_sha256 == sha256_file(samples)
-    fit_samples(table, FitOptions(model="lambert", mcmc=False, seed=0), out_dir=tmp_path)
+    fit_samples(table, FitOptions(model="lambert", mcmc=None, seed=0), out_dir=tmp_path)
     fit = tmp_path / "fit-lambert.json"
     assert read_fit(fit).samples_sha256 == sha256_file(samples)
     write_fit_report(samples, fit, tmp_path / "same.html")  # the samples it was made from

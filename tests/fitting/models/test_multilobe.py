@@ -15,6 +15,7 @@ from brdfdata.directions import spherical_to_vector, uniform_hemisphere
 from brdfdata.samples import SampleTable
 from fitting import models
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from fitting.models import multilobe
 
 OPTIONS = [
@@ -192,8 +193,7 @@ def test_posterior_check_on_one_lobe_and_two_lobe_data():
         model_options=opts,
         shared=("m", "m_ratio"),
         discrepancy=False,
-        steps=1500,
-        walkers=32,
+        mcmc=McmcOptions(max_steps=1500, walkers=32),
         seed=1,
     )
     res_one = fit_samples(one, fit_opts)
