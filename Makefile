@@ -99,10 +99,12 @@ chromium: $(STAMP)
 demo: setup
 	$(BIN)/gonio demo
 
+# One OpenBLAS thread per test worker: two workers already fill the two cores, and OpenBLAS's
+# spinning threads only slow both (tests/conftest.py says how much).
 test: setup
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=25
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=25
 
 # The peers (JAX, NumPyro) are an optional extra: without them the peer benchmarks say so in
 # one line and the rest run.

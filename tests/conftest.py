@@ -8,8 +8,17 @@ import warnings
 from collections.abc import Callable
 from pathlib import Path
 
-import pytest
-from hypothesis import HealthCheck, settings
+# The suite runs on two worker processes, one per core (make test). OpenBLAS's own threads
+# (numpy and scipy: least squares, SVDs) then only oversubscribe the cores — its threads spin
+# while they wait: measured, one realistic coverage repeat took 20 CPU-s and 10 s with them, 10
+# CPU-s and 8.5 s without, so beside the other worker it runs twice as fast. So each worker's BLAS
+# is single-threaded unless the developer says otherwise; set before numpy is first imported
+# (the Makefile sets it too, for the workers and every subprocess). Results differ from a
+# multi-threaded BLAS only in rounding (a summation order), which no test depends on.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import pytest  # noqa: E402
+from hypothesis import HealthCheck, settings  # noqa: E402
 
 from tests.support.paths import REPO
 

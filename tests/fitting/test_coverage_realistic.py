@@ -52,6 +52,7 @@ from acquisition.operator import AutoOperator
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting.budget import read_budget, scale_sigma
 from fitting.fit import FitOptions, fit_samples
+from fitting.mcmc import McmcOptions
 from gonio.pipeline import AcquireSpec, acquire
 from simulator.instrument_draws import InstrumentBudget, latin_hypercube_normal
 from simulator.scene import load_scene
@@ -81,8 +82,7 @@ FIT = dict(
     model="torrance-sparrow",
     model_options={"fresnel": "none", "shadowing": "smith-rational"},
     channels=["G"],
-    walkers=24,
-    steps=600,
+    mcmc=McmcOptions(walkers=24, max_steps=600),
     n_starts=2,
 )
 
