@@ -4,7 +4,8 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 # Test workers: one per core of the CI machine (2). Each test file runs whole on one worker
-# (--dist loadfile), so a file's fixtures, fake cameras and ptys are never shared between workers.
+# (--dist loadfile), so a file's fixtures, fake cameras and ptys are never shared between workers;
+# the longest files start first (tests/conftest.py; xdist's reordering by test count is off).
 TEST_WORKERS ?= 2
 STAMP := $(VENV)/.installed
 
@@ -104,7 +105,8 @@ demo: setup
 test: setup
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=25
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile \
+	  --no-loadscope-reorder --durations=25
 
 # The peers (JAX, NumPyro) are an optional extra: without them the peer benchmarks say so in
 # one line and the rest run.

@@ -126,13 +126,8 @@ def fit(
     )
     setups = _check_setups(table, cands, base, compare_shared, priors)
     _show_flag_counts(table, chans, drop_flagged)
-    _run_fits(
-        table,
-        (base, setups),
-        cands,
-        (compare_shared, accept_poor_fit),
-        Path(out_dir or samples.parent),
-    )
+    dest = Path(out_dir or samples.parent)
+    _run_fits(table, (base, setups), cands, (compare_shared, accept_poor_fit), dest)
 
 
 def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):

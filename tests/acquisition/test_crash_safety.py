@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from acquisition.config import load_plan, load_rig
 from acquisition.plans import build_plan
@@ -35,6 +36,9 @@ from tests.support.faults import (
     read_state,
     write_pty_rig,
 )
+
+# Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
+pytestmark = pytest.mark.heavy(38)
 
 THETA_I = (10.0, 20.0, 30.0, 40.0, 50.0)
 THETA_O = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0)

@@ -34,8 +34,6 @@ why).
 from __future__ import annotations
 
 import tempfile
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +56,10 @@ from simulator.instrument_draws import InstrumentBudget, latin_hypercube_normal
 from simulator.scene import load_scene
 from simulator.truth import reference_parameters
 from tests.support.paths import REPO
+from tests.support.repeats import repeat_pool
+
+# Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
+pytestmark = pytest.mark.heavy(300)
 
 # 30, the number: the binomial sd of a 95 % coverage is then 0.040, so ≥ 0.88 is
 # nominal less 1.8 sd; and the twin's expected kd coverage (below) is far under 0.80.
@@ -132,7 +134,7 @@ def _one_repeat(k: int) -> dict[str, dict[str, tuple[bool, bool]]]:
 # alone, 10 min when the cores are contended (measured) — the suite's 600 s default is too close.
 @pytest.mark.timeout(1200)
 def test_coverage_on_realistic_rigs_and_the_quadrature_twin_fails() -> None:
-    with ProcessPoolExecutor(max_workers=2, mp_context=get_context("spawn")) as pool:
+    with repeat_pool() as pool:
         repeats = list(pool.map(_one_repeat, range(REPEATS)))
     cover = {
         label: {

@@ -11,11 +11,10 @@ a test's outcome should not depend on which tests ran before it)."""
 from __future__ import annotations
 
 import tempfile
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from acquisition.config import PlanConfig, load_rig
 from calibration.reduce import ReduceOptions, reduce_run
@@ -25,6 +24,10 @@ from gonio.pipeline import AcquireSpec, acquire
 from simulator.scene import load_scene
 from simulator.truth import reference_parameters
 from tests.support.paths import REPO
+from tests.support.repeats import repeat_pool
+
+# Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
+pytestmark = pytest.mark.heavy(120)
 
 # 60, not 30: at 30 repeats the binomial sd of a 68 % coverage is 0.085, so even perfectly
 # calibrated intervals fall outside the bands below for some parameter about one run in four;
@@ -72,7 +75,7 @@ def _one_repeat(k: int) -> dict[str, tuple[bool, bool]]:
 
 
 def test_interval_coverage_over_simulated_repeats() -> None:
-    with ProcessPoolExecutor(max_workers=2, mp_context=get_context("spawn")) as pool:
+    with repeat_pool() as pool:
         repeats = list(pool.map(_one_repeat, range(REPEATS)))
     names = set(repeats[0])
     assert names == {"kd_G", "ks_G", "m"}

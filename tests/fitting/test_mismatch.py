@@ -32,9 +32,6 @@ of two, so it is a function of its seed alone — see tests/fitting/test_coverag
 
 from __future__ import annotations
 
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
-
 import numpy as np
 import pytest
 
@@ -52,6 +49,10 @@ from fitting.mismatch import (
     region_label,
     sandwich_adjust,
 )
+from tests.support.repeats import repeat_pool
+
+# Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
+pytestmark = pytest.mark.heavy(90)
 
 REPEATS = 30
 N_MEASURED = 2500
@@ -203,7 +204,7 @@ def _pooled(repeats, key: str) -> dict[int, float]:
 @pytest.fixture(scope="module")
 def study():
     jobs = [(name, rep) for name in MATERIALS for rep in range(REPEATS)]
-    with ProcessPoolExecutor(max_workers=2, mp_context=get_context("spawn")) as pool:
+    with repeat_pool() as pool:
         best = dict(zip(MATERIALS, pool.map(_best, MATERIALS), strict=True))
         repeats = list(pool.map(_one_repeat, jobs))
     return best, repeats

@@ -36,7 +36,7 @@ def test_move_set_samples_the_gaussian_it_is_given(moves: str) -> None:
         d = x - mean
         return -0.5 * np.einsum("wi,ij,wj->w", d, precision, d)
 
-    walkers = FitOptions().walkers
+    walkers = FitOptions().mcmc.walkers
     rng = np.random.default_rng(5)
     sampler = emcee.EnsembleSampler(
         walkers, NDIM, log_prob, vectorize=True, moves=named_moves(moves)

@@ -28,6 +28,9 @@ import pytest
 
 from tests.support.paths import REPO
 
+# Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
+pytestmark = pytest.mark.heavy(56)
+
 CORPUS = REPO / "tests" / "bad_inputs"
 CASES = tomllib.loads((CORPUS / "cases.toml").read_text())["case"]
 MAX_BYTES = 50_000

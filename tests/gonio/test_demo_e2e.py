@@ -19,6 +19,9 @@ from simulator.scene import load_scene
 from simulator.truth import reference_parameters
 from tests.support.paths import REPO
 
+# Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
+pytestmark = pytest.mark.heavy(105)
+
 
 @pytest.fixture(scope="module")
 def demo_run(tmp_path_factory: pytest.TempPathFactory) -> Path:

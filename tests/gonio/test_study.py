@@ -31,6 +31,9 @@ from gonio.studies.accuracy_sweep import (
 from gonio.studies.accuracy_vs_time import run_study
 from tests.support.paths import REPO
 
+# Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
+pytestmark = pytest.mark.heavy(30)
+
 CSV = REPO / "docs" / "accuracy-vs-time.csv"
 MD = REPO / "docs" / "accuracy-vs-time.md"
 

@@ -27,6 +27,9 @@ from gonio.scaleout.texels import TexelJob, run_texel_job
 from simulator.texture import texel_truth
 from tests.support.texels import ProcessCluster, fit_options, texel_samples
 
+# Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
+pytestmark = pytest.mark.heavy(77)
+
 TEXELS = 5
 STEPS = 300
 

@@ -18,6 +18,9 @@ from fitting import models
 from fitting.models import microfacet as mf
 from fitting.models import properties
 
+# Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
+pytestmark = pytest.mark.heavy(55)
+
 TS_ANISO = "torrance-sparrow-anisotropic"
 OPTIONS = [
     {"distribution": d, "shadowing": s, "fresnel": f}
