@@ -359,6 +359,16 @@ class GeometryConfig(Strict):
         "degrees; a 0.5 m arm on an XM430: ~0.1–0.3°): true θ = θ + c·sin θ. The fit carries "
         "c per elevation arm with this σ",
     )
+    camera_roll_deg: float = Field(
+        0.0,
+        ge=-180,
+        le=180,
+        description="how the camera sits on its arm: the turn of the sensor about its optical "
+        "axis, degrees, from the rig's zero mount (at the arms' zero the camera looks down the "
+        "normal with the image's top toward −x, its right toward +y). The camera's orientation "
+        "at every pose follows from it and the axes (acquisition.kinematics); `gonio "
+        "calibrate-rig` measures the rest of it",
+    )
     min_separation_deg: float = Field(5.0, ge=0, le=90, description="light–camera occlusion")
     max_theta_deg: float = Field(85.0, gt=0, le=90)
 
@@ -754,7 +764,8 @@ ARM_OFFSETS_SCHEMA = "gonio.arm-offsets/1"
 def load_arm_offsets(file: str | Path, *, where: str = "") -> dict:
     """Arm zero offsets and sample-plane tilt (degrees) from `gonio calibrate-rig --out FILE`:
     {"schema": "gonio.arm-offsets/1", "offsets_deg": {ROLE: δ}, "tilt_deg": {"x": τx,
-    "y": τy}, "sigma_deg": {...}, ...}. True axis angle = measured + δ."""
+    "y": τy}, "camera_roll_deg": δρ, "sigma_deg": {...}, ...}. True axis angle = measured + δ;
+    the camera's roll = the rig file's camera_roll_deg + δρ (0 in files written before it)."""
     doc = _read_json(file, where, "arm offsets")
     if doc.get("schema") != ARM_OFFSETS_SCHEMA:
         raise ConfigError(
@@ -764,11 +775,14 @@ def load_arm_offsets(file: str | Path, *, where: str = "") -> dict:
     try:
         offsets = {str(k): float(v) for k, v in doc["offsets_deg"].items()}
         tilt = {k: float(doc["tilt_deg"][k]) for k in ("x", "y")}
+        roll = float(doc.get("camera_roll_deg", 0.0))
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise ConfigError(f"{where}{file}: offsets_deg / tilt_deg missing or bad ({exc})") from None
-    vals = [*offsets.values(), *tilt.values()]
+    vals = [*offsets.values(), *tilt.values(), roll]
     if not all(math.isfinite(v) and abs(v) < 30 for v in vals):
-        raise ConfigError(f"{where}{file}: offsets and tilt must be finite and below 30 deg")
+        raise ConfigError(
+            f"{where}{file}: offsets, tilt and camera roll must be finite and below 30 deg"
+        )
     bad = set(offsets) - {
         "light_theta",
         "light_phi",
@@ -778,7 +792,7 @@ def load_arm_offsets(file: str | Path, *, where: str = "") -> dict:
     }
     if bad:
         raise ConfigError(f"{where}{file}: unknown axis role {sorted(bad)[0]!r} in offsets_deg")
-    return {**doc, "offsets_deg": offsets, "tilt_deg": tilt}
+    return {**doc, "offsets_deg": offsets, "tilt_deg": tilt, "camera_roll_deg": roll}
 
 
 def load_plan(path: Path | str) -> PlanConfig:

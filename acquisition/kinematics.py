@@ -5,13 +5,25 @@ Preset "two-arm": two spherical arms centred on the sample. The light arm carrie
 `light_distance_m`, the camera arm the camera at `camera_distance_m`; each arm has an elevation
 axis (θ from the sample normal) and an azimuth axis (φ from +x toward +y).
 
+The camera's orientation is forward kinematics of its arm (`Kinematics.camera_rotation`): at
+the arms' zero it looks down the normal, its image right along +y and image down along +x (the
+rig's zero mount), turned about its optical axis by the rig file's `camera_roll_deg`; the
+elevation axis turns it about the arm's horizontal axis, the azimuth axis about the normal:
+
+    R = R_z(φ) · R_y(θ) · R₀ · R_roll(ρ)          (columns: image right, image down, forward)
+
+so the image turns with the arm's azimuth at θ = 0 as a real camera does: there is no pole.
+Away from the normal, with ρ = 0, this is the camera whose image keeps the horizon level.
+
 Preset "inplane": both arms swing in the lab's x–z plane. The light arm is at lab azimuth 0
 with elevation `light_theta` ≥ 0; the camera arm has a signed elevation `camera_theta`:
 positive is across the normal from the light (lab azimuth π, the specular side), negative on
 the light's side (lab azimuth 0). An optional turntable `sample_azimuth` = α turns the sample
 about its normal by α, so a lab azimuth φ_L is the sample-frame azimuth φ_L − α. Such a rig
 reaches exactly the poses with Δφ = φ_o − φ_i ∈ {0, π} (or θ_i = 0 / θ_o = 0), and, without a
-turntable, only φ_i = 0.
+turntable, only φ_i = 0. Its camera: R = R_z(−α) · R_y(−c) · R₀ · R_roll(ρ), so a camera whose
+image is upright on one side of the normal is upside down on the other, as on a real arm that
+swings through the normal (`camera_roll_deg = 180` makes the specular side upright).
 """
 
 from __future__ import annotations
@@ -22,12 +34,26 @@ from dataclasses import dataclass
 import numpy as np
 
 from acquisition.config import RigConfig
-from brdfdata.directions import camera_axes, spherical_to_vector
+from brdfdata.directions import spherical_to_vector
 from plumbing.errors import UserError
 
-__all__ = ["Pose", "Unreachable", "Kinematics"]
+__all__ = ["Pose", "Unreachable", "Kinematics", "ZERO_MOUNT", "axis_rotation"]
 
 TWO_PI = 2.0 * math.pi
+
+#: R₀: the camera at the arms' zero (module docstring), columns image right, image down and
+#: forward in the sample frame.
+ZERO_MOUNT = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def axis_rotation(axis: str, angle_rad: float) -> np.ndarray:
+    """The right-handed rotation by `angle_rad` about the frame's "x", "y" or "z" axis."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    if axis == "x":
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    if axis == "y":
+        return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 @dataclass(frozen=True)
@@ -170,6 +196,22 @@ class Kinematics:
         p = self.pose(axes_rad)
         return self.geometry.camera_distance_m * spherical_to_vector(p.theta_o, p.phi_o)
 
+    def camera_rotation(self, axes_rad: dict[str, float], roll_rad: float = 0.0) -> np.ndarray:
+        """Camera → sample rotation (3×3, columns: image right, image down, forward; OpenCV's
+        camera axes) at the axes' angles: the forward kinematics of the module docstring, the
+        rig file's `camera_roll_deg` plus `roll_rad` (what `gonio calibrate-rig` measured)."""
+        roll = math.radians(self.geometry.camera_roll_deg) + roll_rad
+        mount = ZERO_MOUNT @ axis_rotation("z", roll)
+        if self.geometry.preset == "inplane":
+            arm = axis_rotation("z", -axes_rad.get("sample_azimuth", 0.0)) @ axis_rotation(
+                "y", -axes_rad["camera_theta"]
+            )
+        else:
+            arm = axis_rotation("z", axes_rad["camera_phi"]) @ axis_rotation(
+                "y", axes_rad["camera_theta"]
+            )
+        return arm @ mount
+
 
 def separation_rad(pose: Pose) -> float:
     """Angle between the light and camera directions of a pose.
@@ -187,22 +229,3 @@ def separation_rad(pose: Pose) -> float:
         a[0] * b[1] - a[1] * b[0],
     )
     return math.atan2(math.hypot(*cross), a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
-
-
-def look_at_rotation(camera_pos_m: np.ndarray, target_m: np.ndarray | None = None) -> np.ndarray:
-    """Camera-to-world rotation in the OpenCV camera convention (x right, y down, z forward).
-
-    The camera on an arm looks at the sample centre; image "up" is the projection of the sample
-    normal +z (so the horizon is horizontal in the image). When the camera looks (nearly) straight
-    down the normal, +z is (nearly) parallel to the view and the rule is ill-conditioned; then
-    image up is +y.
-    The simulated camera renders with this same rotation, so calibration's per-pixel rays and the
-    render agree by construction of the rig, not by coincidence.
-    Returns R (3×3) with columns = camera x, y, z axes expressed in the sample frame.
-    """
-    c = np.asarray(camera_pos_m, dtype=np.float64)
-    t = np.zeros(3) if target_m is None else np.asarray(target_m, dtype=np.float64)
-    forward = t - c
-    forward /= np.linalg.norm(forward)
-    right, down = camera_axes(forward)  # the one look-at rule (brdfdata.directions)
-    return np.stack([right, down, forward], axis=1)

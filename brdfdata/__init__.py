@@ -3,8 +3,8 @@
 =================  ============================================================================
 module             what it holds
 =================  ============================================================================
-``directions``     the angle conventions: spherical ↔ vector in the sample frame, the camera's
-                   look-at axes, uniform hemisphere directions
+``directions``     the angle conventions: spherical ↔ vector in the sample frame, reflection,
+                   uniform hemisphere directions
 ``rusinkiewicz``   half/difference angles (θ_h, θ_d, φ_d) for isotropic materials
 ``samples``        the samples table, its contract (the guards) and its Parquet files
 ``formats``        the formats other instruments write: RGL, MERL, delimited text

@@ -14,7 +14,6 @@ __all__ = [
     "spherical_to_vector",
     "vector_to_spherical",
     "normalize",
-    "camera_axes",
     "reflect",
     "uniform_hemisphere",
     "isotropic_gonio_directions",
@@ -27,23 +26,6 @@ def normalize(v: np.ndarray) -> np.ndarray:
     v = np.asarray(v, dtype=np.float64)
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     return np.divide(v, n, out=np.zeros_like(v), where=n > 0)
-
-
-#: Within 2.6° of the normal (|cos| > 0.999) "up = the normal's projection" is ill-conditioned.
-_POLE_COS = 0.999
-
-
-def camera_axes(forward: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The image's (right, down) axes (..., 3) of a camera looking along the unit vectors
-    ``forward`` (..., 3): image up is the projection of the sample normal +z (the horizon level
-    in the image), and +y within 2.6° of the normal, where that is ill-conditioned. The rig's
-    look-at rule: acquisition.kinematics.look_at_rotation points the camera with it, and the
-    fit's arm-error model (fitting.nuisance.measured_geometry) turns the camera's rays with it."""
-    f = np.asarray(forward, dtype=np.float64)
-    pole = np.abs(f[..., 2:3]) > _POLE_COS
-    hint = np.where(pole, np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]))
-    right = normalize(np.cross(f, hint))
-    return right, np.cross(f, right)
 
 
 def spherical_to_vector(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:

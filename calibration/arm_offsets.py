@@ -19,6 +19,13 @@ and shifted in-plane by s (the board is not exactly centred):
 Least squares over (δθ, δφ, τ_x, τ_y, s_x, s_y) on the camera centres c_b,k (metres; solvePnP's
 centres are good to ~0.1-0.3 mm at 0.5 m, i.e. ~0.02-0.03°). A rotation of the board about the
 normal is indistinguishable from δφ; it is fixed at zero because the board *defines* +x.
+
+Then the camera's roll on its arm, δρ (the part of its mount the rig file's `camera_roll_deg`
+did not state): the camera centres do not see it, the board's orientation in the image does.
+With the arm's forward kinematics at the fitted offsets (`Kinematics.camera_rotation`), each
+view's measured camera → board rotation R_kᵀ differs from the predicted one by a turn about the
+optical axis, ρ_k = δρ + noise; δρ is their mean and its σ their sd / √n (a separate step: the
+roll enters no centre, and its noise is the board's in-image orientation, not the centres').
 """
 
 from __future__ import annotations
@@ -89,6 +96,7 @@ class ArmOffsets:
     rms_m: float  # RMS camera-centre residual
     sigma_rad: dict[str, float]  # 1-σ from the fit's covariance (residual-scaled)
     n_views: int
+    camera_roll_rad: float = 0.0  # add to the rig file's camera_roll_deg (module docstring)
 
     def deg(self) -> dict[str, float]:
         return {
@@ -96,21 +104,37 @@ class ArmOffsets:
             "camera_phi": float(np.degrees(self.camera_phi_rad)),
             "tilt_x": float(np.degrees(self.tilt_x_rad)),
             "tilt_y": float(np.degrees(self.tilt_y_rad)),
+            "camera_roll": float(np.degrees(self.camera_roll_rad)),
         }
 
 
 _NAMES = ("camera_theta", "camera_phi", "tilt_x", "tilt_y", "shift_x", "shift_y")
 
 
+def _true_axes(p, a: Mapping[str, float]) -> dict[str, float]:
+    true = dict(a)
+    true["camera_theta"] = a["camera_theta"] + p[0]
+    true["camera_phi"] = a["camera_phi"] + p[1]
+    return true
+
+
 def _predict(p, kin: Kinematics, axes: Sequence[Mapping[str, float]], board) -> np.ndarray:
     r_bs, t_bs = board_in_sample(board, p[2], p[3], (p[4], p[5]))
+    return np.asarray([r_bs.T @ (kin.camera_position_m(_true_axes(p, a)) - t_bs) for a in axes])
+
+
+def _view_rolls(p, kin: Kinematics, axes, board_poses, board) -> np.ndarray:
+    """ρ_k: each view's turn about the optical axis from the predicted camera → board rotation
+    (the arms at the fitted offsets, no roll beyond the rig file's) to the measured one."""
+    import cv2
+
+    r_bs, _ = board_in_sample(board, p[2], p[3], (p[4], p[5]))
     out = []
-    for a in axes:
-        true = dict(a)
-        true["camera_theta"] = a["camera_theta"] + p[0]
-        true["camera_phi"] = a["camera_phi"] + p[1]
-        c_s = kin.camera_position_m(true)
-        out.append(r_bs.T @ (c_s - t_bs))
+    for a, (rvec, _tvec) in zip(axes, board_poses, strict=True):
+        rot, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
+        predicted = r_bs.T @ kin.camera_rotation(_true_axes(p, a))
+        d = predicted.T @ rot.T  # camera(predicted) ← camera(measured)
+        out.append(np.arctan2(d[1, 0] - d[0, 1], d[0, 0] + d[1, 1]))
     return np.asarray(out)
 
 
@@ -139,6 +163,11 @@ def fit_arm_offsets(
     except np.linalg.LinAlgError:
         sig = np.full(6, np.inf)
     p = sol.x
+    rolls = _view_rolls(p, kin, commanded_axes, board_poses, board)
+    roll = float(np.mean(rolls))
+    sig = np.append(sig, _roll_sigma(p, cov if np.isfinite(sig).all() else None, rolls,
+                                     lambda q: _view_rolls(q, kin, commanded_axes, board_poses,
+                                                           board).mean()))  # fmt: skip
     return ArmOffsets(
         float(p[0]),
         float(p[1]),
@@ -146,9 +175,22 @@ def fit_arm_offsets(
         float(p[3]),
         (float(p[4]), float(p[5])),
         float(np.sqrt(np.mean(r.reshape(-1, 3) ** 2) * 3)),
-        {n: float(s) for n, s in zip(_NAMES, sig, strict=True)},
+        {n: float(s) for n, s in zip((*_NAMES, "camera_roll"), sig, strict=True)},
         len(board_poses),
+        roll,
     )
+
+
+def _roll_sigma(p, cov, rolls: np.ndarray, mean_roll) -> float:
+    """σ of the mean roll: the views' scatter / √n, with the offsets' and tilt's own
+    uncertainty carried through (the predicted orientation moves with them: g Σ gᵀ, g by
+    central differences of 1e-6 rad / 1 µm)."""
+    var = float(np.var(rolls, ddof=1)) / len(rolls)
+    if cov is None:
+        return float("inf")
+    h = 1e-6
+    g = np.array([(mean_roll(p + h * e) - mean_roll(p - h * e)) / (2 * h) for e in np.eye(len(p))])
+    return float(np.sqrt(var + g @ cov @ g))
 
 
 def arm_offsets_from_images(

@@ -9,8 +9,9 @@ coefficients are zero, else cv2.undistortPoints) is cut with the sample plane z 
 `RigGeometry` puts the light and camera in the *sample's* frame from the measured axis angles,
 the rig's kinematics and its geometric calibration (`gonio calibrate-rig`: arm zero offsets δ,
 true angle = measured + δ; the sample plane's tilt R_τ = R_y(τ_y) R_x(τ_x), a point of the
-sample frame sits at R_τ·p in the rig frame — calibration.arm_offsets). The camera still looks
-at the rig's centre; its orientation in the sample frame is R_τᵀ·R_look-at.
+sample frame sits at R_τ·p in the rig frame — calibration.arm_offsets; the camera's roll on its
+arm). The camera's orientation is its arm's forward kinematics (`Kinematics.camera_rotation`,
+roll included), in the sample frame R_τᵀ·R_arm: the image turns with the arm, at θ_o = 0 too.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from acquisition.kinematics import Kinematics, look_at_rotation
+from acquisition.kinematics import Kinematics
 from plumbing.numba_policy import dispatch
 
 __all__ = [
@@ -81,6 +82,7 @@ class RigGeometry:
     kinematics: Kinematics
     offsets_rad: dict[str, float]
     tilt: np.ndarray  # R_τ (3×3)
+    roll_rad: float = 0.0  # the camera's roll beyond the rig file's (calibrate-rig)
 
     @classmethod
     def of_run(cls, kinematics: Kinematics, arm_offsets: dict | None) -> RigGeometry:
@@ -91,7 +93,12 @@ class RigGeometry:
 
         offs = {k: float(np.radians(v)) for k, v in arm_offsets["offsets_deg"].items()}
         t = arm_offsets["tilt_deg"]
-        return cls(kinematics, offs, tilt_rotation(np.radians(t["x"]), np.radians(t["y"])))
+        return cls(
+            kinematics,
+            offs,
+            tilt_rotation(np.radians(t["x"]), np.radians(t["y"])),
+            float(np.radians(arm_offsets.get("camera_roll_deg", 0.0))),
+        )
 
     def true_axes(self, measured: dict[str, float]) -> dict[str, float]:
         return {k: float(v) + self.offsets_rad.get(k, 0.0) for k, v in measured.items()}
@@ -101,7 +108,7 @@ class RigGeometry:
         axes = self.true_axes(measured)
         cam = self.kinematics.camera_position_m(axes)
         light = self.kinematics.light_position_m(axes)
-        rot = self.tilt.T @ look_at_rotation(cam)
+        rot = self.tilt.T @ self.kinematics.camera_rotation(axes, self.roll_rad)
         return self.tilt.T @ cam, self.tilt.T @ light, rot
 
 
@@ -136,13 +143,13 @@ def pixel_geometry(
     *,
     grid: PixelGrid = PixelGrid(),
     margin_m: float = 0.0,
-    rotation: np.ndarray | None = None,
+    rotation: np.ndarray,
     mask_only: bool = False,
 ) -> PixelGeometry:
     """Geometry for the pixel centres of `grid` (default: every pixel of the frame).
 
-    `rotation`: camera → sample frame (columns: camera axes); default the camera looking at
-    the origin (`look_at_rotation`), see `RigGeometry.positions`. `mask_only`: only
+    `rotation`: camera → sample frame (columns: camera axes), from the arm's kinematics
+    (`RigGeometry.positions`). `mask_only`: only
     `on_sample` is filled (the other arrays are 1 × 1 placeholders).
     """
     cam = np.asarray(camera_pos_m, dtype=np.float64)
@@ -158,7 +165,7 @@ def pixel_geometry(
         xs, ys = intr.normalised(us, vs)
         x = np.broadcast_to(xs[None, :], (vs.size, us.size))
         y = np.broadcast_to(ys[:, None], (vs.size, us.size))
-    rot = look_at_rotation(cam) if rotation is None else np.asarray(rotation, dtype=np.float64)
+    rot = np.asarray(rotation, dtype=np.float64)
     h, w = x.shape
     shape3 = (h, w, 3) if not mask_only else (1, 1, 3)
     geo = PixelGeometry(
@@ -228,14 +235,14 @@ def project_points(
     intr: Intrinsics,
     camera_pos_m: np.ndarray,
     points_m: np.ndarray,
-    rotation: np.ndarray | None = None,
+    rotation: np.ndarray,
 ) -> np.ndarray:
     """Pixel coordinates (N, 2) = (u, v) of world points (N, 3) seen by the camera at
-    ``camera_pos_m`` (OpenCV convention as in `pixel_geometry`): x_cam = Rᵀ(X − C), then
-    u = f_x x'/z + c_x, v = f_y y'/z + c_y with (x', y') distorted by Brown–Conrady when the
-    intrinsics have distortion (cv2.projectPoints)."""
+    ``camera_pos_m`` turned by ``rotation`` (OpenCV convention as in `pixel_geometry`):
+    x_cam = Rᵀ(X − C), then u = f_x x'/z + c_x, v = f_y y'/z + c_y with (x', y') distorted by
+    Brown–Conrady when the intrinsics have distortion (cv2.projectPoints)."""
     cam = np.asarray(camera_pos_m, dtype=np.float64)
-    rot = look_at_rotation(cam) if rotation is None else np.asarray(rotation)
+    rot = np.asarray(rotation, dtype=np.float64)
     pc = (np.atleast_2d(np.asarray(points_m, dtype=np.float64)) - cam) @ rot
     if intr.distorted:
         import cv2

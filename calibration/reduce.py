@@ -345,8 +345,13 @@ def _arm_components(rig: RigConfig, arm_offsets: dict | None) -> list[dict]:
     are named and not propagated (they differ from pose to pose)."""
     preset = rig.geometry.preset
     if arm_offsets and arm_offsets.get("sigma_deg"):
-        # calibrate-rig's own σ of what it measured (camera zeros, the sample's tilt)
-        sig = {k: float(v) for k, v in arm_offsets["sigma_deg"].items()}
+        # calibrate-rig's own σ of what it measured (camera zeros, the sample's tilt). Its
+        # roll's is left out: a roll error δρ turns a pixel's ray about the optical axis, by
+        # δρ times the pixel's angle off the axis (≤ 0.1 of δρ on a 12° field): not a term of
+        # the arms' error model, and a few 0.01° after calibrate-rig.
+        sig = {
+            k: float(v) for k, v in arm_offsets["sigma_deg"].items() if k != "camera_roll"
+        }
         zero = {"component": "arm angles: encoder zeros (gonio calibrate-rig)", "type": "A"}
     elif rig.geometry.axis_zero_sigma_deg or rig.geometry.sample_tilt_sigma_deg:
         sig = {k: float(v) for k, v in (rig.geometry.axis_zero_sigma_deg or {}).items()}

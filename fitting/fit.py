@@ -33,17 +33,10 @@ import numpy as np
 from brdfdata.samples import SampleTable
 from fitting import models
 from fitting.budget import add_systematic, left_out_words, read_budget
+from fitting.convergence import diagnose
 from fitting.likelihood import Likelihood, dark_snr_of
 from fitting.lsq import fit_least_squares, polish_in_blocks
-from fitting.mcmc import (
-    ChainFile,
-    ConvergenceTarget,
-    McmcOptions,
-    chain_diagnostics,
-    extend_chain,
-    rhat_across,
-    run_mcmc,
-)
+from fitting.mcmc import ChainFile, McmcOptions, chain_diagnostics, run_mcmc
 from fitting.mismatch import regional_discrepancy, sandwich_adjust
 from fitting.moves import SAMPLER_REVISION
 from fitting.nuisance import (
@@ -159,10 +152,8 @@ class FitOptions:
     weighting: str = "sigma"
     loss: str | None = None
     n_starts: int = 8
+    # Independent ensembles (walkers each): R̂ then compares them (fitting.convergence).
     ensembles: int = 1
-    # A second stop rule: after emcee's own criterion, run on until every R̂ and ESS meet this
-    # target (fitting.mcmc.extend_chain), within the sampler's max_steps in all.
-    converge: ConvergenceTarget | None = None
     # The file a binned table (fitting.binning) was streamed from: the fit then corrects the
     # bins for the model's curvature and states what binning still moves (fitting.binning).
     binned_source: str | os.PathLike | None = None
@@ -288,9 +279,6 @@ def fit_samples(
         with lik.sampling_precision(probes) as (choice, diff):
             precision = {"mcmc": choice, "rounding_lnl": diff, "reason": lik.precision_reason}
             res = _run_ensembles(lik, lsq, x_lsq, opt, rng, h5, progress, coords)
-            if opt.converge is not None:
-                log_prob = lik.log_prob if coords is None else coords.wrap(lik.log_prob)
-                res = extend_chain(res, log_prob, opt.converge, opt.mcmc.max_steps, opt.seed) or res
             lp_lsq = lik.log_prob(x_lsq)  # in the chain's precision, to compare with its values
         if coords is not None:
             res = _from_sampler(res, coords, max(1, int(opt.ensembles)))
@@ -301,10 +289,12 @@ def fit_samples(
         diagnostics = {
             "tau": dict(zip(names, res.tau.tolist(), strict=True)),
             "ess": dict(zip(names, res.ess.tolist(), strict=True)),
+            "ess_tail": dict(zip(names, np.asarray(res.ess_tail).tolist(), strict=True)),
             "acceptance": res.acceptance,
             "converged": False,  # set by the verdicts below
             "rhat": dict(zip(names, res.rhat.tolist(), strict=True)),
             "stop_reason": res.stop_reason,
+            "steps_needed": res.steps_needed,
             "precision": precision,
         }
         extras["mcmc"] = res
@@ -515,14 +505,8 @@ def _from_sampler(res, coords, ensembles: int):
     ln p without the Jacobian, τ / ESS / R̂ recomputed on θ (R̂ across the ensembles)."""
     res.log_prob = res.log_prob - coords.log_jacobian(res.chain)
     res.chain = coords.from_sampler(res.chain)
-    res.tau, ess, rhat = chain_diagnostics(res.chain)
-    res.ess = ess
-    if ensembles > 1:
-        walkers = res.chain.shape[1] // ensembles
-        rhat = rhat_across(
-            [res.chain[:, k * walkers : (k + 1) * walkers] for k in range(ensembles)]
-        )
-    res.rhat = rhat
+    res.tau, d = chain_diagnostics(res.chain, ensembles)
+    res.set_diagnostics(d)
     return res
 
 
@@ -562,11 +546,13 @@ def _run_ensembles(lik, lsq, x_lsq, opt: FitOptions, rng, h5, progress: bool, co
     res = runs[0]
     if len(runs) > 1:
         n_keep = min(r.chain.shape[0] for r in runs)
+        diagnostics = diagnose([r.chain[-n_keep:] for r in runs])  # before runs[0] is pooled
         res.chain = np.concatenate([r.chain[-n_keep:] for r in runs], axis=1)
         res.log_prob = np.concatenate([r.log_prob[-n_keep:] for r in runs], axis=1)
-        res.rhat = rhat_across([r.chain for r in runs])
-        res.ess = np.sum([r.ess for r in runs], axis=0)
+        res.set_diagnostics(diagnostics)
         res.converged = all(r.converged for r in runs)
+        needed = [r.steps_needed for r in runs if r.steps_needed is not None]
+        res.steps_needed = max(needed) if needed else None
         res.stop_reason = ",".join(dict.fromkeys(r.stop_reason for r in runs))
         res.replaced_steps = max(r.replaced_steps for r in runs)
     return res

@@ -4,20 +4,20 @@
 * The ensemble starts in a small ball around the least-squares optimum (scaled by the LSQ
   standard errors when known), clipped inside the prior box; walkers with ln p = −∞ are
   redrawn closer to the optimum.
-* It runs in chunks. After each chunk the integrated autocorrelation time τ_k of every
-  parameter is estimated with ``get_autocorr_time(tol=0)`` (Sokal's automatic window, no
-  "chain too short" error). It stops as *converged* when the chain length N > 50·τ_k for every
-  k and the τ estimate changed by less than 5 % since the last check (the emcee documentation's
-  criterion), otherwise when ``max_steps`` or the time budget is reached — ``stop_reason`` says
-  which ("converged", "max_steps", "time_budget", or "target_ess" when ``target_ess`` is
-  given and every parameter's ESS reached it first — counted only on a chain at least
-  ``MIN_TAU_LENGTHS`` τ long, since a short chain's τ reads low).
-* Burn-in = ⌈3·max τ⌉ (capped at half the chain); ESS_k = (N − burn)·W/τ_k.
-* R-hat: Gelman-Rubin potential scale reduction on *split* per-walker chains — each walker's
-  post-burn chain is cut in half, giving 2W chains of length n; B = n·var(chain means),
-  V = mean within-chain variance, R̂ = √(((n−1)/n·V + B/n)/V) (Gelman et al., BDA3 §11.4).
-  Ensemble walkers are not independent, so this is a necessary, not sufficient, check;
-  ``rhat_across`` gives R̂ across independent ensembles when several were run.
+* It runs in chunks until its own stopping rule holds, with ``max_steps`` and the time budget
+  as caps. After each chunk the integrated autocorrelation time τ_k of every parameter is
+  estimated with ``get_autocorr_time(tol=0)`` (Sokal's automatic window). Once the chain is
+  longer than 50·τ_k for every k and τ changed by less than 5 % since the last check (emcee's
+  criterion: from then on τ, the burn-in and the ESS can be trusted), the post-burn chain's
+  rank-normalised R̂ and bulk and tail ESS (fitting.convergence: Vehtari et al. 2021, by
+  ArviZ) are checked against ``target`` (R̂ < 1.01, ESS ≥ 400): it stops as *converged* when
+  they hold, and runs on otherwise. ``stop_reason`` says why it stopped ("converged",
+  "max_steps", "time_budget", or "target_ess" when ``target_ess`` is given and every
+  parameter's ESS reached it first — counted only on a chain at least ``MIN_TAU_LENGTHS`` τ
+  long, since a short chain's τ reads low).
+* Burn-in = ⌈3·max τ⌉ (capped at half the chain); R̂, bulk and tail ESS of the post-burn chain
+  as fitting.convergence defines them for an ensemble (its walkers are not independent chains;
+  several independent ensembles, `FitOptions.ensembles`, make R̂ a between-chain check).
 * Resumable: with a ``ChainFile`` the chain is saved (fitting.chain_file: emcee's HDF5
   layout, written whole and atomically after every chunk); a file that holds
   a chain of the same (W, D) shape is continued (its random state too) up to ``max_steps``
@@ -42,6 +42,7 @@ import emcee
 import numpy as np
 
 from fitting.chain_file import load_chain, save_chain
+from fitting.convergence import ConvergenceTarget, Diagnostics, diagnose
 from fitting.moves import MOVES, named_moves
 from plumbing.errors import UserError
 from plumbing.progress import Progress
@@ -53,12 +54,10 @@ __all__ = [
     "run_mcmc",
     "McmcOptions",
     "ChainFile",
-    "split_rhat",
-    "rhat_across",
+    "Diagnostics",
     "initial_ball",
     "ConvergenceTarget",
     "convergence_verdict",
-    "extend_chain",
     "chain_diagnostics",
     "MIN_TAU_LENGTHS",
 ]
@@ -94,37 +93,17 @@ class McmcResult:
     #: Steps of a stored chain of *another* problem (fingerprint or shape differ) that this run
     #: replaced in its chain file (0: none) — said so, never silently (issue 18).
     replaced_steps: int = 0
+    #: Tail ESS per parameter (fitting.convergence); ``ess`` is the bulk ESS.
+    ess_tail: np.ndarray | None = None
+    #: The steps the rule would need in all when a cap stopped the chain first (None: met).
+    steps_needed: int | None = None
+
+    def set_diagnostics(self, d: Diagnostics) -> None:
+        self.rhat, self.ess, self.ess_tail = d.rhat, d.ess_bulk, d.ess_tail
 
     @property
     def flat(self) -> np.ndarray:
         return self.chain.reshape(-1, self.chain.shape[-1])
-
-
-def split_rhat(chain: np.ndarray) -> np.ndarray:
-    """Split-R̂ of a chain (N, W, D) → (D,); chains are the 2W walker halves."""
-    chain = np.asarray(chain, dtype=np.float64)
-    n = chain.shape[0] // 2
-    if n < 2:
-        return np.full(chain.shape[-1], np.nan)
-    halves = np.concatenate([chain[:n], chain[n : 2 * n]], axis=1)  # (n, 2W, D)
-    return _gelman_rubin(halves)
-
-
-def rhat_across(chains: list[np.ndarray]) -> np.ndarray:
-    """R̂ across independent ensembles: each ensemble's walker-mean trace is one chain."""
-    n = min(c.shape[0] for c in chains)
-    traces = np.stack([c[-n:].mean(axis=1) for c in chains], axis=1)  # (n, E, D)
-    return _gelman_rubin(traces)
-
-
-def _gelman_rubin(x: np.ndarray) -> np.ndarray:
-    n = x.shape[0]
-    means = x.mean(axis=0)  # (M, D)
-    b = n * means.var(axis=0, ddof=1)
-    v = x.var(axis=0, ddof=1).mean(axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r = np.sqrt(((n - 1) / n * v + b / n) / v)
-    return np.where(v > 0, r, np.nan)
 
 
 def initial_ball(
@@ -206,10 +185,11 @@ def _check_chain_file(path: Path) -> None:
 
 @dataclass(frozen=True)
 class McmcOptions:
-    """How an ensemble runs: `walkers` (raised to ≥ 2D + 2, even), `max_steps`, a wall-time
-    budget, `target_ess` (stop once every ESS reaches it), the emcee `moves` (a name of
-    MOVES or a list), `vectorize` (log_prob takes all walkers at once), `chunk` steps between
-    convergence checks (grows with the chain)."""
+    """How an ensemble runs: `walkers` (raised to ≥ 2D + 2, even), `max_steps` (a cap), a
+    wall-time budget (a cap), `target` (the stopping rule's R̂ and ESS), `target_ess` (stop
+    early once every ESS reaches it), the emcee `moves` (a name of MOVES or a list),
+    `vectorize` (log_prob takes all walkers at once), `chunk` steps between convergence
+    checks (grows with the chain)."""
 
     walkers: int = 32
     max_steps: int = 2000
@@ -218,6 +198,7 @@ class McmcOptions:
     moves: Any = "de"
     vectorize: bool = True
     chunk: int = 100
+    target: ConvergenceTarget = ConvergenceTarget()
 
 
 @dataclass(frozen=True)
@@ -242,8 +223,8 @@ def run_mcmc(
     progress: bool = False,
 ) -> McmcResult:
     """Sample ``log_prob`` ((W, D) → (W,) when vectorised) with emcee from a ball around
-    ``x0`` (initial_ball) until emcee's own criterion (chain > 50 τ, τ stable to 5 %), the
-    ESS target, the step budget or the time budget — whichever comes first."""
+    ``x0`` (initial_ball) until the stopping rule holds (module docstring), the ESS target,
+    the step cap or the time budget — whichever comes first."""
     opt = options or McmcOptions()
     t0 = time.perf_counter()
     rng = np.random.default_rng(rng)
@@ -272,7 +253,7 @@ def run_mcmc(
             scale,
         )
     tau, stop_reason = _sample(sampler, start, opt, t0, progress, store)
-    res = _result(sampler, tau, stop_reason, t0)
+    res = _result(sampler, tau, stop_reason, t0, opt.target)
     res.replaced_steps = replaced
     return res
 
@@ -337,8 +318,12 @@ def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool, store=N
             it = sampler.iteration
             stable = tau_prev is not None and np.all(np.abs(tau - tau_prev) < 0.05 * tau)
             if np.all(np.isfinite(tau)) and np.all(it > 50 * tau) and stable:
-                stop_reason = "converged"
-                break
+                # τ is trusted now: the rule's R̂ and ESS on the post-burn chain (fitting.
+                # convergence; checked only from here, so most fits compute them once).
+                d = diagnose([sampler.get_chain(discard=_burn(tau, it))])
+                if opt.target.met(d.rhat, d.ess_bulk, d.ess_tail):
+                    stop_reason = "converged"
+                    break
             # The ESS is only as good as τ: from a chain a few τ long emcee's estimate reads low
             # (a 100-step chain gave τ ≈ 8 where the long run's is 30, so "ESS 256" was 46 by
             # NumPyro's estimator, R̂ 1.47: benchmarks/bench_peers_sampler.py --quick). So the
@@ -366,46 +351,41 @@ def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool, store=N
     return tau, stop_reason
 
 
-def _result(sampler, tau, stop_reason: str, t0: float) -> McmcResult:
+def _burn(tau: np.ndarray, iterations: int) -> int:
+    """Burn-in: 3 τ_max steps, at most half the chain."""
+    finite = np.isfinite(tau)
+    tau_max = float(np.max(tau[finite])) if np.any(finite) else float(iterations) / 2
+    return min(int(math.ceil(3 * tau_max)), iterations // 2)
+
+
+def _result(sampler, tau, stop_reason: str, t0: float, target: ConvergenceTarget) -> McmcResult:
     """The post-burn chain (burn = 3 τ_max, at most half) and its diagnostics."""
     it = sampler.iteration
     if not np.all(np.isfinite(tau)):
         tau = sampler.get_autocorr_time(tol=0)
-    tau_max = float(np.nanmax(tau)) if np.any(np.isfinite(tau)) else float(it) / 2
-    burn = min(int(math.ceil(3 * tau_max)), it // 2)
+    burn = _burn(tau, it)
     chain = sampler.get_chain(discard=burn)
-    lp = sampler.get_log_prob(discard=burn)
-    ess = chain.shape[0] * sampler.nwalkers / tau
-    return McmcResult(
+    d = diagnose([chain])
+    res = McmcResult(
         chain=chain,
-        log_prob=lp,
+        log_prob=sampler.get_log_prob(discard=burn),
         tau=np.asarray(tau, dtype=np.float64),
-        ess=np.asarray(ess, dtype=np.float64),
-        rhat=split_rhat(chain),
+        ess=d.ess_bulk,
+        rhat=d.rhat,
         acceptance=float(np.mean(sampler.acceptance_fraction)),
         burn=burn,
         iterations=it,
         converged=stop_reason == "converged",
         stop_reason=stop_reason,
         wall_time_s=time.perf_counter() - t0,
+        ess_tail=d.ess_tail,
     )
+    if stop_reason in ("max_steps", "time_budget"):
+        res.steps_needed = d.steps_to(target, it)
+    return res
 
 
-# -- a second stop rule: R̂ and ESS targets ------------------------------------------------------
-@dataclass(frozen=True)
-class ConvergenceTarget:
-    """Run on until every split R̂ < `rhat_max` and every ESS ≥ `ess_min` (Vehtari et al. 2021,
-    "Rank-normalization, folding, and localization: an improved R̂", Bayesian Analysis 16(2):
-    R̂ < 1.01 and ESS ≥ 400)."""
-
-    rhat_max: float = 1.01
-    ess_min: float = 400.0
-
-    def met(self, rhat, ess) -> bool:
-        rhat, ess = np.asarray(rhat, float), np.asarray(ess, float)
-        return bool(np.all(rhat < self.rhat_max) and np.all(ess >= self.ess_min))
-
-
+# -- the target's verdict, and a chain continued until it holds --------------------------------
 def convergence_verdict(
     rhat: dict[str, float], ess: dict[str, float], target: ConvergenceTarget | None = None
 ) -> dict:
@@ -439,66 +419,9 @@ def convergence_verdict(
     }
 
 
-def chain_diagnostics(chain: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """τ (emcee, Sokal window), ESS = N W / τ and split R̂ of a chain (N, W, D)."""
+def chain_diagnostics(chain: np.ndarray, ensembles: int = 1) -> tuple[np.ndarray, Diagnostics]:
+    """τ (emcee, Sokal window) and the R̂ / bulk / tail ESS (fitting.convergence) of a chain
+    (N, W, D) pooled from `ensembles` independent ensembles of W / ensembles walkers each."""
     tau = np.asarray(emcee.autocorr.integrated_time(chain, tol=0), dtype=np.float64)
-    return tau, chain.shape[0] * chain.shape[1] / tau, split_rhat(chain)
-
-
-def extend_chain(
-    res: McmcResult,
-    log_prob: Callable[[np.ndarray], np.ndarray],
-    target: ConvergenceTarget,
-    max_steps: int,
-    seed: int,
-) -> McmcResult | None:
-    """Continue an ensemble until `target` holds or `max_steps` steps in all; None when it
-    already holds (nothing appended).
-
-    Why: `run_mcmc` stops at emcee's own criterion, chain length > 50 τ. The split-walker R̂
-    then sits near √(1 + τ/n) with n ≈ 23 τ the half-chain length, i.e. ≈ 1.02: R̂ < 1.01 needs
-    ≈ 100 τ. The continuation starts from the ensemble's last state with the default
-    moves (DE, seeded from [seed, 10]), grows by half the current length per
-    round (R̂ − 1 falls like 1/length, so 2–3 rounds suffice), appends to the post-burn chain,
-    and recomputes τ, ESS and R̂ on the whole chain.
-    """
-    chain, lp = res.chain, res.log_prob
-    walkers, ndim = chain.shape[1], chain.shape[2]
-    it0 = int(res.iterations)
-    extra = 0
-    sampler = None
-    tau, ess, rhat = chain_diagnostics(chain)
-    t0 = time.perf_counter()
-    while it0 + extra < max_steps and not target.met(rhat, ess):
-        if sampler is None:
-            sampler = emcee.EnsembleSampler(
-                walkers,
-                ndim,
-                log_prob,
-                vectorize=True,
-                moves=named_moves("de"),
-            )
-            state_seed = np.random.default_rng([seed, 10]).integers(0, 2**32 - 1)
-            sampler.random_state = np.random.RandomState(state_seed).get_state()
-            state = chain[-1]
-        n = int(min(max(200, chain.shape[0] // 2), max_steps - it0 - extra))
-        state = sampler.run_mcmc(state, n, skip_initial_state_check=True)
-        extra += n
-        chain = np.concatenate([res.chain, sampler.get_chain()])
-        lp = np.concatenate([res.log_prob, sampler.get_log_prob()])
-        tau, ess, rhat = chain_diagnostics(chain)
-    if sampler is None:
-        return None
-    return McmcResult(
-        chain=chain,
-        log_prob=lp,
-        tau=tau,
-        ess=ess,
-        rhat=rhat,
-        acceptance=float(np.mean(sampler.acceptance_fraction)),
-        burn=res.burn,
-        iterations=it0 + extra,
-        converged=res.converged,
-        stop_reason=f"{res.stop_reason}+extended",
-        wall_time_s=res.wall_time_s + time.perf_counter() - t0,
-    )
+    w = chain.shape[1] // ensembles
+    return tau, diagnose([chain[:, k * w : (k + 1) * w] for k in range(ensembles)])

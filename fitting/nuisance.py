@@ -43,7 +43,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from brdfdata.directions import camera_axes, normalize
 from fitting.budget import scale_sigma
 
 __all__ = [
@@ -276,29 +275,16 @@ def measured_geometry(
         light_new = light * (1.0 + np.asarray(d_r, dtype=np.float64) / r)[..., None]
     light_new = _rotate_elevation(light_new, rows["phi_i"], delta.get("light_theta", 0.0))
     cam_new = _turn_camera(cam, rows["phi_i"], rows["phi_o"], delta, kinematics)
-    ray = _camera_ray(-wo, cam, cam_new)
+    # The camera sits on its arm (acquisition.kinematics: its orientation is the arm's forward
+    # kinematics), so an arm error turns its rays by the rotation that moved it: the same pixel
+    # looks along the turned ray, at the normal as anywhere else.
+    ray = _turn_camera(-wo, rows["phi_i"], rows["phi_o"], delta, kinematics)
     p_new = cam_new - (cam_new[..., 2] / ray[..., 2])[..., None] * ray
     to_new, to_old = light_new - p_new, light - p
     r2_new, r2_old = np.sum(to_new**2, axis=-1), np.sum(to_old**2, axis=-1)
     wi2 = _into_sample(to_new / np.sqrt(r2_new)[..., None], delta)
     wo2 = _into_sample(-ray, delta)
     return wi2, wo2, r2_old / r2_new * wi2[..., 2] / wi[:, 2]
-
-
-def _camera_ray(ray: np.ndarray, cam: np.ndarray, cam_new: np.ndarray) -> np.ndarray:
-    """A pixel's ray (unit, camera → sample) once the camera stands at `cam_new` instead of
-    `cam`, still looking at the sample's centre: the same pixel, so the same components on the
-    camera's image axes, which the rig's look-at rule sets from where the camera looks
-    (brdfdata.directions.camera_axes). Away from the normal that is the arm's rotation itself;
-    within 2.6° of it the rule holds image up at +y, so an azimuth error does not turn the
-    image there (nor, for now, does the arm: docs/lab-setup.md, the look-at rule's limit)."""
-    f_old, f_new = normalize(-cam), normalize(-cam_new)
-    (r_old, d_old), (r_new, d_new) = camera_axes(f_old), camera_axes(f_new)
-
-    def on(axis: np.ndarray) -> np.ndarray:
-        return np.sum(ray * axis, axis=-1, keepdims=True)
-
-    return on(r_old) * r_new + on(d_old) * d_new + on(f_old) * f_new
 
 
 def arm_deltas(rows: dict[str, np.ndarray], natural_rad: dict[str, np.ndarray]) -> dict:

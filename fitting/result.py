@@ -6,6 +6,9 @@
      "parameters": {NAME: {"unit", "map", "median", "p16", "p84", "p2.5", "p97.5"}},
      "diagnostics": {"tau": {NAME: …}, "ess": {NAME: …}, "acceptance", "converged", "budget",
                      "rhat": {NAME: …}, "stop_reason"},
+       (since issue 43 "ess" is the bulk ESS and "rhat" the rank-normalised R̂ of
+       fitting.convergence; "ess_tail" {NAME: …} and "steps_needed" — what the stopping rule
+       would need when a cap stopped the chain, else null — are added)
      "goodness": {"chi2", "dof", "chi2_red", "aic", "bic", "n"},
      "n_samples", "wall_time_s",
      "fixed": {NAME: value},        (optional: parameters held fixed with --fix)

@@ -4,9 +4,12 @@ Each verdict is a dict ``{"name", "status", "reason", "advice"}``: ``status`` is
 "warning" or "fail", ``reason`` one line saying what was measured, ``advice`` one line saying
 what to do ("" when ok). :func:`judge` gives, in this order:
 
-* ``convergence`` — split R̂ (fail > 1.1, warning > 1.01), ESS (fail < 100, warning < 400),
-  chain length against 50 τ, stuck walkers (acceptance far below the ensemble's, or never
-  moving) and lost walkers (typical ln p far below the ensemble's best).
+* ``convergence`` — rank-normalised R̂ (fail > 1.1, warning > 1.01), bulk and tail ESS (fail
+  < 100, warning < 400; fitting.convergence), chain length against 50 τ, stuck walkers
+  (acceptance far below the ensemble's, or never moving) and lost walkers (typical ln p far
+  below the ensemble's best). The sampler runs until R̂ and ESS meet their targets by itself
+  (fitting.mcmc), so a warning here means a cap (--steps, --time-budget) stopped it first —
+  the verdict says which, and how many steps the rule would need.
 * ``chi2`` — χ²/dof against its sampling spread √(2/ν) for ν degrees of freedom.
 * ``regions`` — the same per region of the Rusinkiewicz angles (θ_h, θ_d): residual structure
   the global χ² averages away (a missed specular core, a grazing-angle excess).
@@ -170,7 +173,10 @@ def mcmc_verdict(mcmc, names: Sequence[str]) -> tuple[dict, list[str], str]:
         )
         return v, ["mcmc"], "not converged: no MCMC run"
     rhat = dict(zip(names, np.asarray(mcmc.rhat, float).tolist(), strict=True))
-    ess = dict(zip(names, np.asarray(mcmc.ess, float).tolist(), strict=True))
+    tail = getattr(mcmc, "ess_tail", None)
+    bulk = np.asarray(mcmc.ess, float)
+    ess_all = bulk if tail is None else np.minimum(bulk, np.asarray(tail, float))
+    ess = dict(zip(names, ess_all.tolist(), strict=True))
     tau = dict(zip(names, np.asarray(mcmc.tau, float).tolist(), strict=True))
     r_name, r_max = _worst(rhat, largest=True)
     e_name, e_min = _worst(ess, largest=False)
@@ -184,9 +190,9 @@ def mcmc_verdict(mcmc, names: Sequence[str]) -> tuple[dict, list[str], str]:
     elif not r_max <= RHAT_WARN:
         warns.append(("rhat", f"R̂ {r_max:.4g} > {RHAT_WARN} ({r_name})"))
     if not e_min >= ESS_FAIL:
-        fails.append(("ess", f"ESS {e_min:.0f} < {ESS_FAIL:.0f} ({e_name})"))
+        fails.append(("ess", f"ESS {e_min:.0f} < {ESS_FAIL:.0f} ({e_name}, bulk or tail)"))
     elif not e_min >= ESS_WARN:
-        warns.append(("ess", f"ESS {e_min:.0f} < {ESS_WARN:.0f} ({e_name})"))
+        warns.append(("ess", f"ESS {e_min:.0f} < {ESS_WARN:.0f} ({e_name}, bulk or tail)"))
     if not n_iter >= TAU_LENGTH * t_max:
         warns.append(("length", f"chain {n_iter} < 50τ = {TAU_LENGTH * t_max:.0f} ({t_name})"))
     for label, bad in (("stuck", stuck), ("lost", lost)):
@@ -194,7 +200,7 @@ def mcmc_verdict(mcmc, names: Sequence[str]) -> tuple[dict, list[str], str]:
             text = f"{len(bad)} of {walkers} walkers {label} ({_walker_list(bad)})"
             (fails if len(bad) > WALKER_FAIL_FRACTION * walkers else warns).append((label, text))
     met = (
-        f"R̂ max {r_max:.4g} ≤ {RHAT_WARN}, ESS min {e_min:.0f} ≥ {ESS_WARN:.0f}, "
+        f"R̂ max {r_max:.4g} < {RHAT_WARN}, ESS (bulk and tail) min {e_min:.0f} ≥ {ESS_WARN:.0f}, "
         f"chain {n_iter} ≥ 50τ ({TAU_LENGTH * t_max:.0f}), no stuck or lost walkers"
     )
     failed_names = [k for k, _ in fails + warns]
@@ -203,6 +209,18 @@ def mcmc_verdict(mcmc, names: Sequence[str]) -> tuple[dict, list[str], str]:
     text = "; ".join(t for _, t in fails + warns)
     status = "fail" if fails else "warning"
     advice = "run a longer chain (--steps)"
+    cap = {"max_steps": "the step cap (--steps)", "time_budget": "the time budget (--time-budget)"}
+    stopped = [cap[r] for r in str(mcmc.stop_reason).split(",") if r in cap]
+    if stopped:
+        text = (
+            f"stopped by {stopped[0]} at {n_iter} steps before R̂ and ESS met their targets: {text}"
+        )
+        needed = getattr(mcmc, "steps_needed", None)
+        advice = (
+            f"rerun with --steps {needed} (about what the rule needs)"
+            if needed is not None and stopped[0].startswith("the step")
+            else "rerun with a larger --steps or --time-budget"
+        )
     if stuck or lost:
         advice = "run a longer chain (--steps) or start nearer the optimum; check for several modes"
     return make_verdict("convergence", status, text, advice), failed_names, f"not converged: {text}"

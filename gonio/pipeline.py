@@ -398,6 +398,7 @@ def sample_levels_decoder(camera: dict[str, Any], rig: RigConfig, sample_size_m:
             kin.camera_position_m(axes_measured),
             kin.light_position_m(axes_measured),
             sample_size_m,
+            rotation=kin.camera_rotation(axes_measured),
             mask_only=True,
         ).on_sample
         return lv[on].ravel()

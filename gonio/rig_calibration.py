@@ -178,6 +178,7 @@ def _document(fit, rig_cfg: RigConfig, board, views: list[_View], frames_dir: Pa
         "board": str(board),
         "offsets_deg": {"camera_theta": deg["camera_theta"], "camera_phi": deg["camera_phi"]},
         "tilt_deg": {"x": deg["tilt_x"], "y": deg["tilt_y"]},
+        "camera_roll_deg": deg["camera_roll"],
         "sigma_deg": sig,
         "board_shift_m": list(fit.board_shift_m),
         "rms_m": fit.rms_m,

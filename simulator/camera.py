@@ -20,6 +20,7 @@ import numpy as np
 
 from acquisition.clock import Clock
 from acquisition.protocols import Frame
+from simulator.arms import ArmPose
 from simulator.frames import encode_dng, encode_exr
 from simulator.render import Renderer
 from simulator.scene import Scene
@@ -48,17 +49,17 @@ class SimCamera:
         self,
         scene: Scene,
         clock: Clock,
-        positions_m: Callable[[], tuple[np.ndarray, np.ndarray]],
+        pose_m: Callable[[], ArmPose],
         light_level: Callable[[], float],
         readout_s: float = 0.05,
         renderer: Renderer | None = None,
         world: WorldView | None = None,
-        camera_up_m: Callable[[], np.ndarray | None] | None = None,
     ) -> None:
         self.scene = scene
-        self._camera_up = camera_up_m  # the world's up vector when it is not the look-at one
         self.clock = clock
-        self._positions = positions_m
+        self._pose = pose_m  # the arms now (simulator.arms: lamp position, camera to_world)
+        #: The world's own record of every lit capture: the pose it was rendered from.
+        self.rendered: list[ArmPose] = []
         self._light_level = light_level
         self.readout_s = readout_s
         self.renderer = renderer or Renderer(scene)
@@ -105,7 +106,7 @@ class SimCamera:
             return self.capture_dark(exposure_s)
         if st is not None and st.lens == "flat":
             return self.capture_flat(exposure_s, self.scene.flat_source_radiance_W_m2_sr)
-        light_pos, camera_pos = self._positions()
+        pose = self._pose()
         level = float(self._light_level())
         if st is not None and st.holder == "reference":
             material = self.world.reference_material()
@@ -114,8 +115,10 @@ class SimCamera:
             renderer = self._board_renderer(st.board)
         else:
             renderer = self.renderer
-        up = None if self._camera_up is None else self._camera_up()
-        radiance = renderer.render(light_pos, camera_pos, intensity_scale=level, camera_up=up)
+        self.rendered.append(pose)
+        radiance = renderer.render(
+            pose.light_m, pose.camera_m, intensity_scale=level, camera_to_world=pose.camera_to_world
+        )
         return self._expose(radiance, exposure_s)
 
     def _board_renderer(self, board: Any) -> Renderer:

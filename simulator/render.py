@@ -23,9 +23,12 @@ square pixels, horizontal field of view ``scene.camera.fov_deg`` spanning the fu
 principal point at the image centre. In OpenCV convention (pixel centres at integer coordinates, x
 to the right, y down, z forward):
     fx = fy = (W/2) / tan(fov_x/2),  cx = W/2 − 1/2,  cy = H/2 − 1/2.
-Camera orientation: ``look_at(camera_pos, target, up)`` with ``up = +z`` (the sample normal) unless
-the view is within ~2.6° of the normal, then ``up = +y`` (``look_at_up``). Mitsuba's camera frame
-has columns (left, up, forward); the OpenCV frame is (−left, −up, forward): ``world_to_camera_cv``.
+Camera orientation: on the simulated rig, the arms' own forward kinematics (simulator.arms) gives
+the camera's ``to_world`` (``camera_to_world``: the image turns with the arm, at θ_o = 0 too). A
+free-standing camera placed by its position alone (tests, previews) looks at the target with
+``up = +z`` (the sample normal), or ``+y`` within ~2.6° of the normal (``look_at_up``). Mitsuba's
+camera frame has columns (left, up, forward); the OpenCV frame is (−left, −up, forward):
+``world_to_camera_cv``.
 """
 
 from __future__ import annotations
@@ -207,9 +210,12 @@ def camera_frame(camera_pos_m, target_m=(0.0, 0.0, 0.0)) -> np.ndarray:
     return m
 
 
-def world_to_camera_cv(camera_pos_m, target_m=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
-    """(R, t) with x_cam = R·X_world + t in OpenCV axes (x right, y down, z forward)."""
-    m = camera_frame(camera_pos_m, target_m)
+def world_to_camera_cv(
+    camera_pos_m, target_m=(0.0, 0.0, 0.0), camera_to_world: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) with x_cam = R·X_world + t in OpenCV axes (x right, y down, z forward), for the
+    camera posed by `camera_to_world` (4×4, Mitsuba's frame), else looking at `target_m`."""
+    m = camera_frame(camera_pos_m, target_m) if camera_to_world is None else camera_to_world
     axes = np.stack([-m[:3, 0], -m[:3, 1], m[:3, 2]], axis=1)  # camera→world rotation (CV axes)
     r = axes.T
     t = -r @ m[:3, 3]
@@ -457,11 +463,12 @@ class Renderer:
         camera_target_m=(0.0, 0.0, 0.0),
         intensity_scale: float = 1.0,
         seed: int = 0,
-        camera_up=None,
+        camera_to_world: np.ndarray | None = None,
     ) -> np.ndarray:
         """Radiance image (H, W, 3) float32 in W m⁻² sr⁻¹ for one light/camera pose.
 
-        ``camera_up``: the camera's up vector; default the look-at one (`look_at_up`).
+        ``camera_to_world``: the camera's pose (4×4, Mitsuba's camera frame; simulator.arms),
+        else a camera at ``camera_pos_m`` looking at ``camera_target_m`` (`look_at_up`).
 
         ``intensity_scale`` multiplies the lamp's radiant intensity. With no stray light radiance
         is linear in it, so it is applied to the image (exact, no parameter update); stray light
@@ -489,12 +496,14 @@ class Renderer:
                 else ("light.intensity.value", light.intensity_W_sr)
             )
             p[key] = mi.Color3f(*[float(b) * float(intensity_scale) for b in base])
-        up = look_at_up(camera_pos_m, camera_target_m) if camera_up is None else camera_up
-        tw = mi.ScalarTransform4f().look_at(
-            origin=[float(v) for v in camera_pos_m],
-            target=[float(v) for v in camera_target_m],
-            up=[float(v) for v in up],
-        )
+        if camera_to_world is None:
+            tw = mi.ScalarTransform4f().look_at(
+                origin=[float(v) for v in camera_pos_m],
+                target=[float(v) for v in camera_target_m],
+                up=[float(v) for v in look_at_up(camera_pos_m, camera_target_m)],
+            )
+        else:
+            tw = mi.ScalarTransform4f(np.asarray(camera_to_world, dtype=np.float64).tolist())
         p["sensor.to_world"] = mi.Transform4f(tw) if hasattr(mi, "Transform4f") else tw
         p.update()
         img = self._with_flags(mi.render, self._scene, spp=self.spp, seed=seed)
@@ -504,8 +513,9 @@ class Renderer:
         self.effect_counts.update(self._render_effects)
         return out
 
-    def pixel_rays(self, camera_pos_m, camera_target_m=(0.0, 0.0, 0.0)):
-        """World-space ray (origin, unit directions (H, W, 3)) through every pixel centre."""
+    def pixel_rays(self, camera_pos_m, camera_target_m=(0.0, 0.0, 0.0), camera_to_world=None):
+        """World-space ray (origin, unit directions (H, W, 3)) through every pixel centre of the
+        camera `render` would use (the same `camera_to_world` or look-at)."""
         k = self.intrinsics
         u = np.arange(k["width"], dtype=float)
         v = np.arange(k["height"], dtype=float)
@@ -513,12 +523,14 @@ class Renderer:
         d_cam = np.stack(
             [(uu - k["cx"]) / k["fx"], (vv - k["cy"]) / k["fy"], np.ones_like(uu)], axis=-1
         )
-        r, _ = world_to_camera_cv(camera_pos_m, camera_target_m)
+        r, _ = world_to_camera_cv(camera_pos_m, camera_target_m, camera_to_world)
         d = d_cam @ r  # R^T applied to row vectors: camera → world
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         return np.asarray(camera_pos_m, float), d
 
-    def pixel_geometry(self, light_pos_m, camera_pos_m, camera_target_m=(0.0, 0.0, 0.0)) -> dict:
+    def pixel_geometry(
+        self, light_pos_m, camera_pos_m, camera_target_m=(0.0, 0.0, 0.0), camera_to_world=None
+    ) -> dict:
         """Exact geometry of every pixel centre's view of the sample plane (for truth and tests).
 
         Returns a dict of arrays: ``point_m`` (H, W, 3) where the pixel ray meets z = 0,
@@ -526,7 +538,7 @@ class Renderer:
         distance to the light, and ``on_sample`` (H, W) bool (hit inside the square sample,
         in front of the camera, and with the light above the surface).
         """
-        origin, dirs = self.pixel_rays(camera_pos_m, camera_target_m)
+        origin, dirs = self.pixel_rays(camera_pos_m, camera_target_m, camera_to_world)
         with np.errstate(divide="ignore", invalid="ignore"):
             t = -origin[2] / dirs[..., 2]
         p = origin + t[..., None] * dirs

@@ -375,6 +375,10 @@ class GeometryTruth(Strict):
       burr or a sample on tape: a few tenths of a degree. Rendered by putting the arms in the
       sample's frame (positions and the camera's roll rotated by R_τᵀ), which is the same
       world; what is on the holder (sample, board, reference target) tilts with it.
+    - `camera_roll_error_deg`: the camera's true turn about its optical axis on its arm minus
+      the rig file's `camera_roll_deg` (a camera screwed onto a plate by one ¼-20 thread sits
+      a degree or two off unless keyed; `gonio calibrate-rig` measures it). The world's arms
+      carry the camera by their own forward kinematics (simulator.arms).
 
     Encoder quantisation (4096 ticks per revolution) needs no setting: the emulated servos
     position and report whole ticks (0.088°/tick), as the real ones do."""
@@ -388,6 +392,7 @@ class GeometryTruth(Strict):
     camera_distance_error_m: float = 0.0
     sample_bow_m: float = Field(0.0, ge=-0.005, le=0.005)
     sample_tilt_deg: dict[Literal["x", "y"], float] = Field(default_factory=dict)
+    camera_roll_error_deg: float = Field(0.0, ge=-30, le=30)
 
 
 def bow_slopes(sagitta_m: float, half_side_m: float, x_m, y_m) -> tuple:

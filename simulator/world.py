@@ -32,10 +32,10 @@ import numpy as np
 
 from acquisition.clock import Clock, SystemClock, VirtualClock, register_clock
 from acquisition.config import RigConfig
-from acquisition.kinematics import Kinematics
 from acquisition.operator import Operator, OperatorStep
 from acquisition.rig import register_camera_backend
 from plumbing.config import ConfigError
+from simulator.arms import ArmPose, arm_pose
 from simulator.camera import SimCamera, WorldView
 from simulator.dxl import EmulatedBus, register_bus
 from simulator.faults import CameraFaults, FaultyCamera
@@ -138,7 +138,6 @@ class SimWorld:
     def __init__(self, rig: RigConfig, scene: Scene, *, renderer: Renderer | None = None) -> None:
         self.rig = rig
         self.scene = world_scene(scene, rig)
-        self.kinematics = Kinematics(rig)
         self.state = HolderState()
         self.remote = None
         if url_name(rig.bus.url, "dxlsim") is not None:
@@ -225,37 +224,21 @@ class SimWorld:
             move = int(last_move.get(ax.id, last_move.get(str(ax.id), 0))) * ax.direction
             axes[role] -= 0.5 * math.radians(play) * move
 
-    def positions_m(self) -> tuple[np.ndarray, np.ndarray]:
-        axes = self.true_axes_rad()
-        light, camera = (
-            self.kinematics.light_position_m(axes),
-            self.kinematics.camera_position_m(axes),
-        )
+    def arm_pose(self) -> ArmPose:
+        """Where the lamp is and how the camera is posed, in the sample's frame, at the arms'
+        true angles (simulator.arms: the world's own forward kinematics, each axis a Mitsuba
+        transform), with the scene's distance, roll and tilt errors (each counted in
+        `effect_counts` when the scene states it)."""
         geo = self.scene.geometry
-        # The lamp's true distance (scene [geometry]): further along its own ray.
-        if geo.light_distance_error_m:
-            self.effect_counts["light_distance"] += 1
-            light = light * (1.0 + geo.light_distance_error_m / np.linalg.norm(light))
-        if geo.camera_distance_error_m:  # the camera further along its own line of sight
-            self.effect_counts["camera_distance"] += 1
-            camera = camera * (1.0 + geo.camera_distance_error_m / np.linalg.norm(camera))
-        if geo.sample_tilt_deg:  # the arms seen from the tilted sample's frame
-            self.effect_counts["sample_tilt"] += 1
-            r_t = _tilt_rotation(geo.sample_tilt_deg).T
-            light, camera = r_t @ light, r_t @ camera
-        return light, camera
-
-    def camera_up_m(self) -> np.ndarray | None:
-        """The camera's up vector in the sample's frame when the sample is tilted (the rig's
-        look-at up rotated with the arms, so the camera's roll is the rig's); None otherwise
-        (the renderer's own look-at up)."""
-        tilt = self.scene.geometry.sample_tilt_deg
-        if not tilt:
-            return None
-        from simulator.render import look_at_up
-
-        camera = self.kinematics.camera_position_m(self.true_axes_rad())
-        return _tilt_rotation(tilt).T @ look_at_up(camera)
+        for name, on in (
+            ("light_distance", geo.light_distance_error_m),
+            ("camera_distance", geo.camera_distance_error_m),
+            ("sample_tilt", geo.sample_tilt_deg),
+            ("camera_roll", geo.camera_roll_error_deg),
+        ):
+            if on:
+                self.effect_counts[name] += 1
+        return arm_pose(self.rig, self.true_axes_rad(), geo)
 
     def light_level(self) -> float:
         if self.rig.light.manual:
@@ -314,25 +297,10 @@ class SimWorld:
             self.camera = SimCamera(
                 self.scene,
                 clock,
-                self.positions_m,
+                self.arm_pose,
                 self.light_level,
                 readout_s=rig.camera.readout_s,
                 renderer=self._renderer,
                 world=self._view(),
-                camera_up_m=self.camera_up_m,
             )
         return FaultyCamera(self.camera, self.camera_faults)
-
-
-def _tilt_rotation(tilt_deg: dict[str, float]) -> np.ndarray:
-    """R_τ = R_y(τ_y) R_x(τ_x), the convention of calibration.arm_offsets.tilt_rotation (the
-    simulator does not import calibration: the layers keep the world's truth and the lab's
-    estimate apart)."""
-    tx, ty = math.radians(tilt_deg.get("x", 0.0)), math.radians(tilt_deg.get("y", 0.0))
-    rx = np.array(
-        [[1.0, 0.0, 0.0], [0.0, math.cos(tx), -math.sin(tx)], [0.0, math.sin(tx), math.cos(tx)]]
-    )
-    ry = np.array(
-        [[math.cos(ty), 0.0, math.sin(ty)], [0.0, 1.0, 0.0], [-math.sin(ty), 0.0, math.cos(ty)]]
-    )
-    return ry @ rx

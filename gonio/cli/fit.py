@@ -83,7 +83,10 @@ def fit(
     ] = False,
     no_mcmc: Annotated[bool, typer.Option("--no-mcmc", help="Least squares only.")] = False,
     walkers: Annotated[int, typer.Option(help="emcee walkers.")] = 32,
-    steps: Annotated[int, typer.Option(help="Maximum MCMC steps.")] = 3000,
+    steps: Annotated[
+        int,
+        typer.Option(help="Cap on MCMC steps (the chain stops once R̂ < 1.01, ESS ≥ 400)."),
+    ] = 3000,
     time_budget: Annotated[float | None, typer.Option(help="MCMC wall-time budget [s].")] = None,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     out_dir: Annotated[

@@ -263,7 +263,8 @@ def calibrate_rig_cmd(
     out.print(
         f"{out_file}: camera θ offset {o['camera_theta']:+.3f}° ± {sg['camera_theta']:.3f}, "
         f"φ offset {o['camera_phi']:+.3f}° ± {sg['camera_phi']:.3f}; tilt x {t['x']:+.3f}° ± "
-        f"{sg['tilt_x']:.3f}, y {t['y']:+.3f}° ± {sg['tilt_y']:.3f} ({doc['n_views']} views, "
+        f"{sg['tilt_x']:.3f}, y {t['y']:+.3f}° ± {sg['tilt_y']:.3f}; camera roll "
+        f"{doc['camera_roll_deg']:+.3f}° ± {sg['camera_roll']:.3f} ({doc['n_views']} views, "
         f"RMS {1e3 * doc['rms_m']:.2f} mm)"
     )
 

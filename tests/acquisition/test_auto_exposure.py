@@ -173,6 +173,7 @@ def test_sim_run_every_pose_has_an_unsaturated_frame_and_enough_signal(tmp_path:
                 kin.camera_position_m(r.axes_measured),
                 kin.light_position_m(r.axes_measured),
                 size,
+                rotation=kin.camera_rotation(r.axes_measured),
             ).on_sample
             dn = np.asarray(d.dn, dtype=np.float64)[on]
             # Clipped as calibration defines it (radiometry.saturated: DN ≥ white − 0.5).

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from calibration.hdr import RawBrackets, merge_brackets_local, merge_frames_local
+from simulator.render import world_to_camera_cv
 
 GAIN_E_PER_DN = 2.0
 WHITE_DN = 4095.0
@@ -112,7 +113,9 @@ def test_threads_do_not_change_the_merge_or_the_geometry() -> None:
         # bands of rows recompute step 1 for that many rows beyond their ends
         merged = merge_frames_local(brackets, valid=valid, cfa=True)
         plain = merge_frames_local(brackets, valid=valid, cfa=False)
-        geo = pixel_geometry(intr, cam, np.array([-0.2, 0.0, 0.4]), 0.05)
+        # a camera looking at the centre (the simulator's pinhole): threaded against serial rays
+        rot = world_to_camera_cv(cam)[0].T
+        geo = pixel_geometry(intr, cam, np.array([-0.2, 0.0, 0.4]), 0.05, rotation=rot)
         return (*merged, *plain, geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
 
     previous = set_threading("serial")

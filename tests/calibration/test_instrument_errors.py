@@ -107,7 +107,7 @@ def test_a_world_without_instrument_errors_runs_none(tmp_path) -> None:
     """The demo scene states no arm error: after a whole board calibration none has run."""
     world = prepare_backends(board_rig(), load_scene(REPO / "configs" / "scenes" / "demo.toml"))
     world.true_axes_rad()
-    world.positions_m()
+    world.arm_pose()
     assert sum(world.effect_counts.values()) == 0
 
 

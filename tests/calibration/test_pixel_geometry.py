@@ -16,12 +16,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquisition.kinematics import look_at_rotation
 from calibration.geometry import Intrinsics, PixelGrid, pixel_geometry, project_points
+from simulator.render import world_to_camera_cv
 
 SIZE_M = 0.05
 CAM_M = np.array([0.21, -0.12, 0.43])  # θ_o ≈ 31°: an oblique view, a trapezoidal footprint
 LIGHT_M = np.array([-0.3, 0.05, 0.35])
+
+
+def _camera_rotation() -> np.ndarray:
+    """Camera → sample rotation of a camera at CAM_M looking at the centre (the simulator's
+    pinhole: any orientation serves, these tests are about the rays through it)."""
+    return world_to_camera_cv(CAM_M)[0].T
 
 
 def _intrinsics(distorted: bool) -> Intrinsics:
@@ -33,7 +39,7 @@ def _intrinsics(distorted: bool) -> Intrinsics:
 @pytest.mark.parametrize("step, offset", [(1, 0.0), (2, 0.5)])
 def test_on_sample_pixels_project_back_onto_themselves(distorted, step, offset) -> None:
     intr = _intrinsics(distorted)
-    rot = look_at_rotation(CAM_M)
+    rot = _camera_rotation()
     grid = PixelGrid(step, offset)
     geo = pixel_geometry(intr, CAM_M, LIGHT_M, SIZE_M, grid=grid, rotation=rot)
     on = geo.on_sample
@@ -59,7 +65,7 @@ def test_pixels_off_the_sample_are_off(distorted) -> None:
     """A pixel is on the sample exactly when the pixel's ray lands inside the square: the
     neighbours of the footprint's edge pixels, one pixel out, land outside it (or miss)."""
     intr = _intrinsics(distorted)
-    rot = look_at_rotation(CAM_M)
+    rot = _camera_rotation()
     geo = pixel_geometry(intr, CAM_M, LIGHT_M, SIZE_M, rotation=rot)
     on = geo.on_sample
     ring = np.zeros_like(on)
@@ -75,7 +81,7 @@ def test_pixels_off_the_sample_are_off(distorted) -> None:
 
 def test_a_window_gives_the_whole_frames_values() -> None:
     intr = _intrinsics(False)
-    rot = look_at_rotation(CAM_M)
+    rot = _camera_rotation()
     whole = pixel_geometry(intr, CAM_M, LIGHT_M, SIZE_M, grid=PixelGrid(2, 0.5), rotation=rot)
     x0, y0, x1, y1 = 96, 64, 400, 352
     grid = PixelGrid(2, 0.5, (x0, y0, x1, y1))
@@ -95,7 +101,7 @@ def test_the_mask_alone_is_the_whole_geometrys_mask(light_z_m) -> None:
     of the normalised directions: the same pixels, whether the lamp is above, level with or
     below the sample's plane (then no pixel is lit)."""
     intr = _intrinsics(True)
-    rot = look_at_rotation(CAM_M)
+    rot = _camera_rotation()
     light = np.array([LIGHT_M[0], LIGHT_M[1], light_z_m])
     whole = pixel_geometry(intr, CAM_M, light, SIZE_M, rotation=rot)
     mask = pixel_geometry(intr, CAM_M, light, SIZE_M, rotation=rot, mask_only=True)

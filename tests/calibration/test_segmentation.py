@@ -32,8 +32,9 @@ from calibration.geometry import Intrinsics, project_points
 from calibration.reduce import ReduceOptions, reduce_run
 from calibration.segmentation import iou, polygon_mask, segment_sample
 from gonio.pipeline import AcquireSpec, acquire
+from simulator.arms import ArmPose
 from simulator.camera import SimCamera
-from simulator.render import camera_intrinsics, world_to_camera_cv
+from simulator.render import camera_frame, camera_intrinsics, world_to_camera_cv
 from simulator.scene import Scene, load_scene
 from tests.support.paths import REPO
 
@@ -97,7 +98,7 @@ def frames():
     for deg in POSES_DEG:
         pose = Pose.from_deg(*deg)
         light, camera = DISTANCE_M * pose.wi, DISTANCE_M * pose.wo
-        where["p"] = (light, camera)
+        where["p"] = ArmPose(light, camera_frame(camera))  # a camera looking at the centre
         frame = cam.capture(exposure_s)
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / f"f{frame.suffix}"
@@ -123,7 +124,8 @@ def test_segmentation_recovers_the_true_footprint_from_a_wrong_prior(frames) -> 
         wrong_cam = (
             DISTANCE_M * Pose(pose.theta_i, pose.phi_i, pose.theta_o + ARM_ERROR_RAD, pose.phi_o).wo
         )
-        corners = project_points(intr, wrong_cam, stated)  # the (wrong) geometric prior
+        # the (wrong) geometric prior: a camera at the wrong place looking at the centre
+        corners = project_points(intr, wrong_cam, stated, world_to_camera_cv(wrong_cam)[0].T)
         prior = polygon_mask(flux.shape, corners)
         seg = segment_sample(flux, corners, noise_sd=noise, band_px=6)
         truth = cov > 0.5

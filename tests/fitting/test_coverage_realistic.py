@@ -56,7 +56,7 @@ from simulator.instrument_draws import InstrumentBudget, latin_hypercube_normal
 from simulator.scene import load_scene
 from simulator.truth import reference_parameters
 from tests.support.paths import REPO
-from tests.support.repeats import repeat_pool
+from tests.support.repeats import repeat_map, repeat_pool
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
 pytestmark = pytest.mark.heavy(300)
@@ -135,7 +135,7 @@ def _one_repeat(k: int) -> dict[str, dict[str, tuple[bool, bool]]]:
 @pytest.mark.timeout(1200)
 def test_coverage_on_realistic_rigs_and_the_quadrature_twin_fails() -> None:
     with repeat_pool() as pool:
-        repeats = list(pool.map(_one_repeat, range(REPEATS)))
+        repeats = repeat_map(pool, _one_repeat, range(REPEATS))
     cover = {
         label: {
             name: (

@@ -24,7 +24,7 @@ from gonio.pipeline import AcquireSpec, acquire
 from simulator.scene import load_scene
 from simulator.truth import reference_parameters
 from tests.support.paths import REPO
-from tests.support.repeats import repeat_pool
+from tests.support.repeats import repeat_map, repeat_pool
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
 pytestmark = pytest.mark.heavy(120)
@@ -76,7 +76,7 @@ def _one_repeat(k: int) -> dict[str, tuple[bool, bool]]:
 
 def test_interval_coverage_over_simulated_repeats() -> None:
     with repeat_pool() as pool:
-        repeats = list(pool.map(_one_repeat, range(REPEATS)))
+        repeats = repeat_map(pool, _one_repeat, range(REPEATS))
     names = set(repeats[0])
     assert names == {"kd_G", "ks_G", "m"}
     for name in sorted(names):

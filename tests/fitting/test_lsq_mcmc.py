@@ -16,7 +16,7 @@ from fitting import models
 from fitting.fit import FitOptions, fit_samples
 from fitting.likelihood import Likelihood
 from fitting.lsq import fit_least_squares
-from fitting.mcmc import ChainFile, McmcOptions, run_mcmc, split_rhat
+from fitting.mcmc import ChainFile, McmcOptions, run_mcmc
 from fitting.priors import ParameterSpace
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
@@ -176,35 +176,6 @@ def test_a_small_target_ess_does_not_stop_a_chain_before_its_tau_settles():
     assert res.stop_reason in ("target_ess", "converged")  # converged: N > 50 τ, stable τ
     assert res.iterations >= MIN_TAU_LENGTHS * np.max(res.tau)
     assert np.min(res.ess) >= 200
-
-
-def _rhat_bda3(chains: list[list[float]]) -> float:
-    """Gelman et al., BDA3 eq. 11.1–11.4, written with plain Python loops (reference)."""
-    m, n = len(chains), len(chains[0])
-    means = [sum(c) / n for c in chains]
-    grand = sum(means) / m
-    b = n / (m - 1) * sum((x - grand) ** 2 for x in means)
-    w = (
-        sum(sum((x - mu) ** 2 for x in c) / (n - 1) for c, mu in zip(chains, means, strict=True))
-        / m
-    )
-    return ((n - 1) / n * w + b / n) / w
-
-
-def test_split_rhat_matches_bda3():
-    rng = np.random.default_rng(6)
-    chain = rng.standard_normal((400, 8, 2))
-    chain[:, :4, 1] += 1.0  # half the walkers offset in parameter 1 → R̂ clearly > 1
-    ours = split_rhat(chain)
-    ref = []
-    for k in range(2):
-        # Split each walker's chain into halves → 16 chains of 200.
-        halves = [chain[:200, w, k].tolist() for w in range(8)]
-        halves += [chain[200:, w, k].tolist() for w in range(8)]
-        ref.append(np.sqrt(_rhat_bda3(halves)))
-    assert ours == pytest.approx(ref, rel=1e-10)
-    # Offset ±0.5 around the pooled mean adds between-variance 0.25 → R̂ ≈ √1.25 ≈ 1.12.
-    assert ours[0] < 1.02 and ours[1] > 1.05
 
 
 def test_hdf_resume_continues_chain(tmp_path):

@@ -49,7 +49,7 @@ from fitting.mismatch import (
     region_label,
     sandwich_adjust,
 )
-from tests.support.repeats import repeat_pool
+from tests.support.repeats import repeat_map, repeat_pool
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
 pytestmark = pytest.mark.heavy(90)
@@ -205,7 +205,7 @@ def _pooled(repeats, key: str) -> dict[int, float]:
 def study():
     jobs = [(name, rep) for name in MATERIALS for rep in range(REPEATS)]
     with repeat_pool() as pool:
-        best = dict(zip(MATERIALS, pool.map(_best, MATERIALS), strict=True))
+        best = dict(zip(MATERIALS, repeat_map(pool, _best, MATERIALS), strict=True))
         repeats = list(pool.map(_one_repeat, jobs))
     return best, repeats
 

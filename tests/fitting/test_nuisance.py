@@ -113,13 +113,28 @@ def test_a_shared_scale_is_marginalised_by_the_chain(truth_table) -> None:
     assert "(statistical)" in parameter_table(plain.to_dict(), {})
 
 
+#: One realization, six quantities checked: a 95 % statement about the six together
+#: (Bonferroni: each within its central 1 − 0.05/6 interval, |z| ≤ 2.64). Six separate 95 %
+#: checks fail by chance on one realization in four — which this test did when the world's
+#: camera began turning with its arm at θ_o = 0 (issue 43: the images there changed, so did the
+#: realization; the three zeros sat 2.25, 2.42 and 2.34 sd high, together, as correlated
+#: nuisances do). Over 12 other noise seeds the zeros' mean errors were +0.002 ± 0.003° (light
+#: θ), +0.003 ± 0.003° (camera θ), +0.001 ± 0.006° (camera φ), 0 of 36 intervals missed.
+Z_FAMILY_95 = 2.64
+
+
+def _z(p: dict, truth: float) -> float:
+    """(truth − median) in posterior sd, the sd from the central 95 % interval's width."""
+    return (truth - p["median"]) / ((p["p97.5"] - p["p2.5"]) / 3.92)
+
+
 def test_the_fit_recovers_the_arms_zero_errors_of_a_simulated_rig() -> None:
     """A simulated world whose arms' zeros are off by +0.5° (light elevation), −0.4° (camera
     elevation) and +0.5° (camera azimuth), on a rig file that states σ 0.3° for each and no
     calibrate-rig: the fit's nuisance estimates are within 20 % of the world's errors (the
     issue's bound for a first-order model: arms turned about the sample's centre, the
-    irradiance's cos θ_i with them; measured 2–4 %) and their 95 % intervals hold them; kd, ks
-    and m's intervals hold the truth and the model fits (χ²/dof < 1.2: its spread at ≈ 6000
+    irradiance's cos θ_i with them; measured 2–11 %) and, with kd, ks and m, hold the truth
+    at 95 % together (Z_FAMILY_95), and the model fits (χ²/dof < 1.2: its spread at ≈ 6000
     samples is 0.018, so 1.2 is 11 sd — a slack for the footprint's own small effects)."""
     from acquisition.config import PlanConfig, load_rig
     from calibration.reduce import ReduceOptions, reduce_run
@@ -152,11 +167,11 @@ def test_the_fit_recovers_the_arms_zero_errors_of_a_simulated_rig() -> None:
     for axis, err in zeros.items():
         p = fit.parameters[f"{axis}_zero"]
         assert p["median"] == pytest.approx(err, rel=0.2), (axis, p["median"], err)
-        assert p["p2.5"] <= err <= p["p97.5"], (axis, p, err)
+        assert abs(_z(p, err)) <= Z_FAMILY_95, (axis, p, err)
     truth = reference_parameters(base)
     for name in ("kd_G", "ks_G", "m"):
         p = fit.parameters[name]
-        assert p["p2.5"] <= truth[name] <= p["p97.5"], (name, p, truth[name])
+        assert abs(_z(p, truth[name])) <= Z_FAMILY_95, (name, p, truth[name])
     assert fit.goodness["chi2_red"] < 1.2, fit.goodness
     # Not carried, the zeros are model error: χ²/dof far above 1, and the mismatch widening
     # makes m's interval at least 10 times wider than the one that carries them.

@@ -16,8 +16,9 @@ import pytest
 
 from brdfdata.directions import grid_direction_pairs
 from fitting import models
+from fitting.convergence import diagnose
 from fitting.fit import FitOptions, fit_samples
-from fitting.mcmc import ConvergenceTarget, McmcOptions, McmcResult, split_rhat
+from fitting.mcmc import McmcOptions, McmcResult
 from fitting.priors import ParameterSpec, PriorBound, PriorsConfig
 from fitting.verdicts import (
     VERDICT_NAMES,
@@ -37,12 +38,14 @@ TS_MITSUBA = {"fresnel": "none", "shadowing": "smith-rational"}  # what roughcon
 def _result(chain: np.ndarray, log_prob: np.ndarray) -> McmcResult:
     """An McmcResult of a constructed post-burn chain, diagnosed as fitting.mcmc does."""
     tau = np.asarray(emcee.autocorr.integrated_time(chain, tol=0), float)
+    d = diagnose([chain])
     return McmcResult(
         chain=chain,
         log_prob=log_prob,
         tau=tau,
-        ess=chain.shape[0] * chain.shape[1] / tau,
-        rhat=split_rhat(chain),
+        ess=d.ess_bulk,
+        ess_tail=d.ess_tail,
+        rhat=d.rhat,
         acceptance=1.0,
         burn=0,
         iterations=chain.shape[0],
@@ -69,21 +72,23 @@ def test_rhat_above_1_1_fails() -> None:
     chain, lp = _iid()
     # Half the walkers sample N(1.5, 1): between-walker variance 1.5²/4 ≈ 0.56 of the
     # within variance, split R̂ ≈ √1.56 ≈ 1.25 > 1.1. Their ln p stays within the χ²_2
-    # range (not "lost"), so R̂ is the only failing criterion.
+    # range (not "lost"). The ensemble's draws, its walkers end to end (fitting.convergence),
+    # then hold two long blocks 1.5 apart: their ESS is low too, as it should be.
     chain[:, 16:, 0] += 1.5
     res = _result(chain, lp)
     assert np.max(res.rhat) > 1.1
     v, failed, because = mcmc_verdict(res, ["a", "b"])
-    assert v["status"] == "fail" and failed == ["rhat"]
+    assert v["status"] == "fail" and failed[0] == "rhat" and set(failed) <= {"rhat", "ess"}
     assert "R̂" in v["reason"] and "(a)" in v["reason"] and because.startswith("not converged")
 
 
 def test_rhat_between_1_01_and_1_1_warns() -> None:
     chain, lp = _iid()
-    # A shift of 0.4: R̂ ≈ √(1 + 0.04) ≈ 1.02.
-    chain[:, 16:, 1] += 0.4
+    # A shift of 0.3 sd of half the walkers: R̂ 1.014 (measured), and the ESS of the walkers'
+    # draws end to end 113 (two blocks 0.3 apart; a warning, ≥ 100).
+    chain[:, 16:, 1] += 0.3
     v, failed, _ = mcmc_verdict(_result(chain, lp), ["a", "b"])
-    assert v["status"] == "warning" and failed == ["rhat"] and "(b)" in v["reason"]
+    assert v["status"] == "warning" and "rhat" in failed and "(b)" in v["reason"]
 
 
 @pytest.mark.parametrize(("n_stuck", "status"), [(1, "warning"), (5, "fail")])
@@ -280,7 +285,6 @@ def test_matched_model_with_a_long_chain_is_ok_everywhere() -> None:
             channels=["R"],
             mcmc=McmcOptions(walkers=32, max_steps=8000),
             seed=2,
-            converge=ConvergenceTarget(),
         ),
     )
     verdicts = _verdicts(fit)
