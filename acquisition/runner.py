@@ -39,7 +39,7 @@ from acquisition.plans import Plan, PlannedPose, build_refine_plan, park_targets
 from acquisition.protocols import DeviceFault, Frame, FrameLevels
 from acquisition.rig import Rig
 from acquisition.runlog import LOG_NAME, RunLog
-from acquisition.store import CaptureRecord, CaptureStart, RunStore
+from acquisition.store import CaptureRecord, CaptureStart, RunStore, exposure_taken
 from plumbing.inputs import FRAME_MAX_BYTES, read_input_bytes
 from plumbing.progress import Progress, progress
 
@@ -167,6 +167,7 @@ class _Done:
     frame_path: str
     axes_measured: dict[str, float]
     levels: dict[str, Any] | None  # the stored sample-region stats, when there are any
+    exposure_taken_s: float  # what the frame had (store.exposure_taken)
 
     @classmethod
     def of(cls, rec: CaptureRecord) -> _Done:
@@ -178,6 +179,7 @@ class _Done:
             rec.frame_path,
             rec.axes_measured,
             levels,
+            rec.exposure_taken_s,
         )
 
 
@@ -205,7 +207,7 @@ def _stats_of(ses: _Session, rec: _Done, cfg: PlanConfig) -> FrameStats:
         try:
             frame = Frame(read_input_bytes(path, "frame", FRAME_MAX_BYTES), path.suffix.lower(), {})
             st = frame_stats(
-                _levels_of(ses, frame, rec.axes_measured), rec.exposure_s, cfg.auto_exposure
+                _levels_of(ses, frame, rec.axes_measured), rec.exposure_taken_s, cfg.auto_exposure
             )
         except _NeedLevels:
             raise
@@ -247,8 +249,10 @@ def _capture(
     stats, level_error = None, None
     if want_stats:
         try:
-            stats = frame_stats(
-                _levels_of(ses, frame, where["measured"]), exposure_s, cfg.auto_exposure
+            stats = frame_stats(  # the signal rate is per the exposure the frame had
+                _levels_of(ses, frame, where["measured"]),
+                exposure_taken(meta, exposure_s),
+                cfg.auto_exposure,
             )
             meta[LEVELS_META] = stats.to_dict()
         except _NeedLevels:
@@ -281,7 +285,15 @@ def _capture(
     store.finish_capture(cid, frame.data, meta)
     write_s = time.perf_counter() - w0
     ses.history.setdefault(planned.index, []).append(
-        _Done(planned.index, b, exposure_s, "", where["measured"], meta.get(LEVELS_META))
+        _Done(
+            planned.index,
+            b,
+            exposure_s,
+            "",
+            where["measured"],
+            meta.get(LEVELS_META),
+            exposure_taken(meta, exposure_s),
+        )
     )
     if stats is not None:
         ses.stats[(planned.index, b)] = stats

@@ -43,6 +43,7 @@ __all__ = [
     "CaptureStart",
     "CalibrationRecord",
     "CALIBRATION_KINDS",
+    "exposure_taken",
     "sha256_file",
     "now_iso",
 ]
@@ -174,6 +175,18 @@ CREATE TABLE IF NOT EXISTS calibration_takes (
 CALIBRATION_KINDS = ("dark", "flat", "reference")
 
 
+def exposure_taken(frame_meta: dict[str, Any], commanded_s: float) -> float:
+    """The exposure a frame had: what the camera reported it took (frame metadata
+    ``exposure_s`` — Aravis reads the camera's rounded value back, gphoto2 takes the nearest
+    shutter speed, the simulated camera quantises as a sensor does), else the commanded one
+    (a camera that reports nothing). Calibration uses this for every frame: the HDR merge, the
+    darks' matching, the flat and the reference scale."""
+    reported = frame_meta.get("exposure_s") if isinstance(frame_meta, dict) else None
+    if isinstance(reported, int | float) and math.isfinite(reported) and reported > 0:
+        return float(reported)
+    return float(commanded_s)
+
+
 @dataclass(frozen=True)
 class CaptureStart:
     """Everything known about a capture before its frame exists (its pending manifest row):
@@ -208,13 +221,20 @@ class CalibrationRecord:
     meta: dict[str, Any]
     frame_meta: dict[str, Any]
 
+    @property
+    def exposure_taken_s(self) -> float:
+        """The exposure the frame had (`exposure_taken`)."""
+        return exposure_taken(self.frame_meta, self.exposure_s)
+
     def entry(self) -> dict[str, Any]:
-        """As a plain dict: kind, exposure_s, path, sha256, and the kind's own keys (meta)."""
+        """As a plain dict: kind, exposure_s (the exposure the frame had: `exposure_taken`),
+        exposure_commanded_s, path, sha256, and the kind's own keys (meta)."""
         return {
             **self.meta,
             "kind": self.kind,
             "take": self.take,
-            "exposure_s": self.exposure_s,
+            "exposure_s": self.exposure_taken_s,
+            "exposure_commanded_s": self.exposure_s,
             "path": self.frame_path,
             "sha256": self.sha256,
         }
@@ -225,7 +245,7 @@ class CaptureRecord:
     id: int
     pose_index: int
     bracket_index: int
-    exposure_s: float
+    exposure_s: float  # as commanded (the plan's); the frame had `exposure_taken_s`
     theta_i: float
     phi_i: float
     theta_o: float
@@ -238,6 +258,11 @@ class CaptureRecord:
     devices: dict[str, Any]
     frame_meta: dict[str, Any]
     lab_time_s: float | None
+
+    @property
+    def exposure_taken_s(self) -> float:
+        """The exposure the frame had (`exposure_taken`)."""
+        return exposure_taken(self.frame_meta, self.exposure_s)
 
 
 class RunStore:

@@ -38,6 +38,7 @@ __all__ = [
     "DarkLibrary",
     "master_dark",
     "load_darks",
+    "DARK_MATCH_REL",
 ]
 
 
@@ -140,6 +141,14 @@ def _welford_update(mean, m2, x, n):
         m2[k] += delta * (v - mean[k])
 
 
+#: A dark and a frame match when their exposures agree to 0.1 %: what differs then is the dark
+#: current over 0.1 % of t (≤ 0.01 e⁻ at 10 e⁻/s for 1 s, far below a read noise of a few e⁻),
+#: while two exposures a plan means apart are ≥ 1/3 stop (26 %) apart on a shutter table and
+#: far more than a line period (≤ 30 µs) apart on a sensor. One camera's report of one asked
+#: exposure is the same every time; the slack is for a report rounded differently (µs, a float).
+DARK_MATCH_REL = 1e-3
+
+
 @dataclass(frozen=True)
 class DarkLibrary:
     masters: dict[float, MasterDark]
@@ -148,10 +157,11 @@ class DarkLibrary:
     stack: np.ndarray | None = None
 
     def for_exposure(self, exposure_s: float) -> MasterDark:
-        """The master taken at this exposure (relative match 1e-6); dark current is linear in
-        t but DSNU and hot pixels need not be, so we do not extrapolate."""
+        """The master taken at this exposure (the exposures the frames had, store.exposure_taken)
+        within DARK_MATCH_REL; dark current is linear in t but DSNU and hot pixels need not be,
+        so we do not extrapolate."""
         for t, m in self.masters.items():
-            if abs(t - exposure_s) <= 1e-6 * max(t, exposure_s):
+            if abs(t - exposure_s) <= DARK_MATCH_REL * max(t, exposure_s):
                 return m
         have = ", ".join(f"{t:g}" for t in sorted(self.masters))
         raise CalibrationFrameError(f"no master dark for exposure {exposure_s:g} s (have: {have})")

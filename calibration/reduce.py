@@ -686,7 +686,7 @@ def _with_approach(poses: dict[int, dict]) -> dict[str, dict]:
 
 def _reduce_pose(cal: RunCalibration, recs, decoded, intensity) -> Iterator[dict[str, np.ndarray]]:
     """The samples of one pose, one dict of columns per colour plane."""
-    exposures = [float(r.exposure_s) for r in recs]
+    exposures = [r.exposure_taken_s for r in recs]  # what each frame had, not what was asked
     planes, seg = pose_planes(cal, decoded, exposures, recs[0].axes_measured)
     k_rad = cal.radiometry.radiance_per_electron_rate
     for c, pl in enumerate(planes):

@@ -204,11 +204,15 @@ class SimCamera:
             self._reference_renderers[key] = Renderer(scene, variant=self.renderer.variant)
         return self._reference_renderers[key]
 
-    def _expose(self, radiance: np.ndarray, exposure_s: float) -> Frame:
+    def _expose(self, radiance: np.ndarray, asked_s: float) -> Frame:
+        # The exposure the sensor can take (a whole number of line periods, or the nearest
+        # shutter speed: simulator.scene.CameraSpec), reported in the frame as a camera does.
+        exposure_s = self.scene.camera.exposure_taken_s(asked_s)
         dn = self.sensor.capture(radiance, exposure_s)
         self.captures += 1
         meta = {
             "exposure_s": float(exposure_s),
+            "exposure_commanded_s": float(asked_s),
             "black_level_dn": self.scene.sensor.black_level_dn,
             "white_level": 2**self.scene.sensor.adc_bits - 1,
             "capture": self.captures,

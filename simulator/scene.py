@@ -306,10 +306,27 @@ class RenderSpec(Strict):
 
 
 class CameraSpec(Strict):
+    """The simulated camera. Its exposure is quantised as a real sensor's is, and it reports the
+    exposure it took (frame metadata ``exposure_s``; the asked one is ``exposure_commanded_s``):
+    ``exposure_step_s`` is a CMOS sensor's line period (machine-vision cameras: 10–30 µs; the
+    exposure is a whole number of lines, the nearest), ``shutter_speeds_s`` a DSLR's table
+    (1/3-stop steps; the nearest in log). Neither: the exposure asked for."""
+
     resolution: tuple[int, int] = (64, 64)
     fov_deg: float = Field(12.0, gt=0, lt=170, description="horizontal field of view")
     f_number: float = Field(4.0, gt=0)
     format: Literal["exr", "dng"] = "exr"
+    exposure_step_s: float = Field(0.0, ge=0, lt=1)
+    shutter_speeds_s: tuple[Annotated[float, Field(gt=0)], ...] = ()
+
+    def exposure_taken_s(self, asked_s: float) -> float:
+        """The exposure this camera takes when asked for `asked_s` (class docstring)."""
+        if self.shutter_speeds_s:
+            table = np.asarray(self.shutter_speeds_s, dtype=np.float64)
+            return float(table[np.argmin(np.abs(np.log(table / asked_s)))])
+        if self.exposure_step_s > 0:
+            return max(1, round(asked_s / self.exposure_step_s)) * self.exposure_step_s
+        return float(asked_s)
 
 
 class SensorSpec(Strict):
