@@ -199,6 +199,7 @@ class Likelihood:
         if not self.censor:
             usable &= ~sat & ~dark
         self.data: list[ChannelData] = []
+        self._geometry_memo: dict[int, tuple] = {}  # _geometry: the last shifts and result
         # A dark row's value becomes its censoring bound, the detection limit (module docstring).
         f_all = np.asarray(table.f, dtype=np.float64)
         with np.errstate(invalid="ignore"):
@@ -402,13 +403,29 @@ class Likelihood:
         kernel call over the W·N direction pairs, each row with its walker's parameters."""
         kin = getattr(self.space.shared_errors, "kinematics", "two-arm")
         n_walkers = next(iter(shifts.values())).shape[0]
-        wi, wo, ratio = measured_geometry(d.wi, d.wo, d.arm, shifts, kin)
+        wi, wo, ratio = self._geometry(d, shifts, kin)
         n = d.f.size
         wi = np.broadcast_to(wi, (n_walkers, n, 3)).reshape(-1, 3)
         wo = np.broadcast_to(wo, (n_walkers, n, 3)).reshape(-1, 3)
         rows = {k: np.broadcast_to(v, (n_walkers, n)).reshape(-1) for k, v in params.items()}
         f = np.asarray(self.model.evaluate(rows, wi, wo), dtype=np.float64).reshape(n_walkers, n)
         return f * np.broadcast_to(ratio, (n_walkers, n))
+
+    def _geometry(self, d: ChannelData, shifts: dict, kin: str):
+        """measured_geometry of the channel at these arm shifts, the last result again when the
+        shifts are the same: a least-squares Jacobian moves one parameter at a time, and for
+        the model's parameters and the scale nuisances the arms stay where they were (about
+        half the evaluations of a nuisance fit's least squares, measured)."""
+        last = self._geometry_memo.get(id(d))
+        if (
+            last is not None
+            and last[0].keys() == shifts.keys()
+            and all(np.array_equal(last[0][k], v) for k, v in shifts.items())
+        ):
+            return last[1]
+        out = measured_geometry(d.wi, d.wo, d.arm, shifts, kin)
+        self._geometry_memo[id(d)] = ({k: np.array(v) for k, v in shifts.items()}, out)
+        return out
 
     def _per_pass(self, walkers: int) -> int:
         """How many θ one likelihood pass takes (PASS_ELEMENTS)."""

@@ -200,11 +200,35 @@ def is_nuisance(spec) -> bool:  # fitting.priors.ParameterSpec
 def _rotate_elevation(w: np.ndarray, arm_phi: np.ndarray, delta) -> np.ndarray:
     """Directions w (N, 3) turned by δ (radians; scalar or (W, 1)) about the horizontal axis
     a = (−sin φ, cos φ, 0) normal to the arm's vertical plane (Rodrigues): positive δ raises
-    the arm away from the normal, toward its azimuth φ."""
-    a = np.stack([-np.sin(arm_phi), np.cos(arm_phi), np.zeros_like(arm_phi)], axis=-1)
+    the arm away from the normal, toward its azimuth φ. Written out by component
+    (w' = w cos δ + (a × w) sin δ + a (a·w)(1 − cos δ) with a_z = 0): the least squares and
+    the chain call it thousands of times, and numpy's cross and stack cost more than the sums."""
+    sp, cp = _sincos(arm_phi)
     d = np.asarray(delta, dtype=np.float64)
-    c, s = np.cos(d)[..., None], np.sin(d)[..., None]
-    return w * c + np.cross(a, w) * s + a * (np.sum(a * w, axis=-1)[..., None] * (1.0 - c))
+    c, s = np.cos(d), np.sin(d)
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    along = (cp * y - sp * x) * (1.0 - c)  # (a·w)(1 − cos δ)
+    return np.stack(
+        [x * c + cp * z * s - sp * along, y * c + sp * z * s + cp * along,
+         z * c - (sp * y + cp * x) * s],
+        axis=-1,
+    )  # fmt: skip
+
+
+_SINCOS: dict[int, tuple] = {}
+
+
+def _sincos(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sin φ, cos φ) of an arm-azimuth array, kept for the array's life (the rows' azimuths are
+    the same arrays call after call)."""
+    hit = _SINCOS.get(id(phi))
+    if hit is not None and hit[0] is phi:
+        return hit[1], hit[2]
+    out = (np.sin(phi), np.cos(phi))
+    if len(_SINCOS) > 64:
+        _SINCOS.clear()
+    _SINCOS[id(phi)] = (phi, *out)
+    return out
 
 
 def _turn_camera(v: np.ndarray, arm_phi_i, arm_phi_o, delta_rad: dict, kinematics: str):
