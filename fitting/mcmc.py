@@ -381,7 +381,10 @@ def _result(sampler, tau, stop_reason: str, t0: float, target: ConvergenceTarget
         ess_tail=d.ess_tail,
     )
     if stop_reason in ("max_steps", "time_budget"):
-        res.steps_needed = d.steps_to(target, it)
+        # the rule's R̂ and ESS, and the 50 τ from which τ (and so the ESS) is trusted
+        length = int(math.ceil(50 * np.max(tau))) if np.all(np.isfinite(tau)) else 0
+        needed = max(d.steps_to(target, it) or 0, length)
+        res.steps_needed = needed if needed > it else None
     return res
 
 

@@ -461,8 +461,15 @@ def run_spine(run_dir: Path | str, spec: SpineSpec) -> SpineResult:
     return SpineResult(run_dir, res, table, fit, timings, lab, poses)
 
 
-def demo(out: Path | None, scene_path: Path | None, quick: bool, progress: bool = True) -> Path:
-    """Simulated acquisition → calibration → fit → report into `out`; returns the report path."""
+def demo(
+    out: Path | None,
+    scene_path: Path | None,
+    quick: bool,
+    progress: bool = True,
+    seed: int | None = None,
+) -> Path:
+    """Simulated acquisition → calibration → fit → report into `out`; returns the report path.
+    `seed`: another realization (the scene's noise seed and the fit's), None: the scene's."""
     from calibration.reduce import ReduceOptions
     from fitting.export import write_material_xml
     from gonio.report import write_report
@@ -477,10 +484,15 @@ def demo(out: Path | None, scene_path: Path | None, quick: bool, progress: bool 
 
     rig = load_rig(cfg / "rigs" / "sim.toml")
     scene = load_scene(scene_path) if scene_path is not None else None
+    if seed is not None:
+        scene = scene or load_scene(_need(rig.scene, "the rig's scene"))
+        scene = scene.model_copy(update={"seed": int(seed)})
     # The model the fit uses is the one the scene's material is, when there is one.
     fit_opts, line = demo_fit_choice(
         scene if scene is not None else load_scene(_need(rig.scene, "the rig's scene")), quick
     )
+    if seed is not None:
+        fit_opts = fit_opts.replace(seed=int(seed))
     console.print(line, soft_wrap=True, markup=False)
     spec = SpineSpec(
         AcquireSpec(

@@ -26,6 +26,10 @@ def demo(
     out_dir: Annotated[Path | None, typer.Option("--out", help="Run directory to create.")] = None,
     scene: Annotated[Path | None, typer.Option("--scene", help="Scene TOML to simulate.")] = None,
     quick: Annotated[bool, typer.Option("--quick", help="Shorter MCMC (≈1 min).")] = False,
+    seed: Annotated[
+        int | None,
+        typer.Option(help="Another realization: the sensor's noise and the fit's seed."),
+    ] = None,
 ) -> None:
     """Simulated acquisition → calibration → fit → report; prints the report path."""
     from gonio.pipeline import demo as run_demo
@@ -33,7 +37,7 @@ def demo(
 
     if out_dir is not None:
         check_run_path(out_dir)  # no '..' in run paths (gonio/runs.py)
-    report = run_demo(out_dir, scene, quick)
+    report = run_demo(out_dir, scene, quick, seed=seed)
     _demo_verdicts(report.parent)
     out.print(str(report))
 

@@ -14,18 +14,13 @@ The twin fits the same samples the old way — the scale's σ added to every sam
 quadrature, the angles not carried — and its 95 % coverage of kd must fall below 80 %: the
 shared error averaged away as if it were independent (so this test can fail).
 
-Measured (stop 35): kd 0.63 / 0.97, ks 0.60 / 0.93, m 0.80 / 0.93 (68 % / 95 %). m's bound holds
-at its edge, and its intervals are still about 1.4× too wide: over these rigs m's error is 0.72
-of its posterior half-width (kd's and ks's 1.04 and 0.99) and biased by +0.36 of it (the 5 mm
-lamp's blur of the lobe, which the model does not carry). Two causes were found and removed:
-the first walkers were drawn axis-wise with the Laplace sds, off the ridge of the strongly
-correlated light-elevation zero and tilt about y, where 600 steps still held them (0.87 → 0.83),
-and the nuisance model turned a camera-azimuth error's image at the normal, which the rig's
-look-at rule does not (→ 0.80). What is left: with the world's errors fixed, noise alone moves
-m by 0.56 of its half-width, so the rigs' errors move it by about 0.5 where the posterior
-expects about 0.83; the nuisance model matches the world error by error
-(tests/fitting/test_nuisance.py: slopes 1.000), so the remaining width comes from how the errors
-combine, not from one of them.
+Measured (stop 35): kd 0.63 / 0.97, ks 0.60 / 0.93, m 0.80 / 0.93 (68 % / 95 %), m's intervals
+then about 1.4× too wide. Measured 2026-12-06, after the camera's pose became its arm's forward
+kinematics in the world, calibration and the nuisance model alike (issue 43: at θ_o = 0 the
+world's image now turns with the arm's azimuth, and an azimuth error turns the fit's rays the
+same way, where the old look-at rule held both still) and the sampler's own R̂/ESS stopping
+rule: kd 0.70 / 0.97, ks 0.73 / 1.00, m 0.70 / 0.97; the twin's kd 0.27 / 0.37. Whether m's
+over-width is gone needs its error-to-half-width ratio measured again (not done yet).
 
 Each repeat runs in a fresh interpreter (spawn, as tests/fitting/test_coverage_sim.py, which says
 why).
