@@ -7,6 +7,8 @@ BIN := $(VENV)/bin
 # (--dist loadfile), so a file's fixtures, fake cameras and ptys are never shared between workers;
 # the longest files start first (tests/conftest.py; xdist's reordering by test count is off).
 TEST_WORKERS ?= 2
+# Extra pytest arguments for a one-off run, e.g. make test PYTEST_ARGS="--durations=0".
+PYTEST_ARGS ?=
 STAMP := $(VENV)/.installed
 
 .PHONY: setup llvm aravis-debs aravis chromium demo test bench lint clean
@@ -106,7 +108,7 @@ test: setup
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile \
-	  --no-loadscope-reorder --durations=25
+	  --no-loadscope-reorder --durations=25 $(PYTEST_ARGS)
 
 # The peers (JAX, NumPyro) are an optional extra: without them the peer benchmarks say so in
 # one line and the rest run.
