@@ -53,6 +53,7 @@ from brdfdata.samples import (
     SampleTable,
     check_columns,
     open_samples_file,
+    row_kinds,
     table_from_arrow,
 )
 from fitting.likelihood import dark_snr_of
@@ -120,15 +121,10 @@ class BinReport:
 
 
 def _row_kinds(t: SampleTable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(usable, saturated, dark) masks: what fitting.likelihood lets enter, and how."""
-    flags = np.asarray(t.flags, np.int64)
-    sat = (flags & Flags.SATURATED) != 0
-    dark = ((flags & Flags.DARK) != 0) & ~sat
-    usable = (flags & (Flags.BELOW_HORIZON | Flags.MASKED | Flags.NEGATIVE)) == 0
-    usable &= np.isfinite(t.f) & np.isfinite(t.sigma) & (t.sigma > 0)
-    for a in (t.theta_i, t.phi_i, t.theta_o, t.phi_o):
-        usable &= np.isfinite(a)
-    return usable, sat, dark
+    """(usable, saturated, dark) masks: the flags' roles (brdfdata.samples.FLAG_ROLES), read as
+    fitting.likelihood reads them, so a table binned or not gives one answer."""
+    kinds = row_kinds(t)
+    return kinds.usable, kinds.saturated, kinds.dark
 
 
 class _Accumulator:

@@ -30,7 +30,10 @@ Model (per sample j, channel c; f̂ = model f_r, f the measurement, σ its 1-σ 
   (ln Φ(−40) ≈ −804, not −∞). Censored terms use the Gaussian even in Student-t mode
   (documented simplification).
 * Samples flagged below-horizon or masked (flags & 12), and rows with non-finite f or σ or
-  σ ≤ 0, never enter.
+  σ ≤ 0, never enter; a value below zero (flagged 16 or not) enters as the measurement it is
+  — the Gaussian is defined there, and leaving such values out selects the high draws of a
+  dark part. The flags' roles are ``brdfdata.samples.FLAG_ROLES``, which the binned path, the
+  verdicts and the report read too.
 
 The result is finite or −∞, never NaN: −∞ outside the prior support or where the model is not
 finite for any used sample.
@@ -62,7 +65,7 @@ import numpy as np
 from scipy.special import gammaln, log_ndtr
 
 from brdfdata.directions import spherical_to_vector
-from brdfdata.samples import Flags, SampleTable
+from brdfdata.samples import SampleTable, row_kinds
 from fitting.likelihood_kernels import gauss_discrepancy_sum
 from fitting.nuisance import ANGLE_NUISANCES, arm_deltas, arm_rows, measured_geometry, to_si
 from fitting.priors import ParameterSpace
@@ -183,14 +186,10 @@ class Likelihood:
         self.kind = kind
         self.nu = float(nu)
         self.censor = bool(censor)
+        self.dark_snr = float(dark_snr)
         channels = list(channels if channels is not None else space.channels)
-        flags = np.asarray(table.flags, dtype=np.int64)
-        usable = np.isfinite(table.f) & np.isfinite(table.sigma) & (table.sigma > 0)
-        for a in (table.theta_i, table.phi_i, table.theta_o, table.phi_o):
-            usable &= np.isfinite(a)
-        usable &= (flags & (Flags.BELOW_HORIZON | Flags.MASKED)) == 0
-        sat = (flags & Flags.SATURATED) != 0
-        dark = ((flags & Flags.DARK) != 0) & ~sat
+        kinds = row_kinds(table)  # FLAG_ROLES: the one reading of the flags
+        usable, sat, dark = kinds.usable.copy(), kinds.saturated, kinds.dark
         in_channels = np.isin(table.channel, channels)
         # Counted whether or not they enter, so a fit can say what it did with them.
         self.n_saturated = int(np.sum(usable & in_channels & sat))
@@ -620,6 +619,37 @@ class Likelihood:
         if any(d.cluster is None for d in self.data):
             return None
         return np.concatenate([d.cluster for d in self.data])
+
+    def chi2_selected(self, theta: np.ndarray) -> tuple[float, float] | None:
+        """Mean and variance of the exact rows' χ² = Σ ((f − f̂)/σ)² at θ (D,), given that each
+        was *selected* by reading above the detection limit c_j = dark_snr·σ_j — so whenever the
+        table has dark rows (the calibration's rule: a reading below c is flagged dark, every
+        other one is exact), whether they are censored or dropped. None when no row is dark.
+
+        Why: a row whose truth sits near c is kept only when its noise went up, so its residual
+        is a normal truncated below at a_j = (c_j − f̂_j)/σ_j, not a normal, and χ² ~ χ²_n no
+        longer holds (issue 43: flagging a dark table's rows below 3σ raised a false "model
+        misses the data"). With λ_j = φ(a_j)/(1 − Φ(a_j)) (the inverse Mills ratio, from
+        log-densities so it stays finite for large a): E[z²] = 1 + a λ, E[z⁴] = 3 + (a³ + 3a) λ
+        (Johnson, Kotz & Balakrishnan, Continuous Univariate Distributions 1, §10.1); rows are
+        independent, so the sum's mean and variance are the sums."""
+        if self.n_dark == 0:
+            return None
+        fms = self.predict(np.atleast_2d(np.asarray(theta, dtype=np.float64)))
+        mean = var = 0.0
+        for d, fm in zip(self.data, fms, strict=True):
+            e = d.exact
+            a = self.dark_snr - fm[0, e] / d.sigma[e]
+            a = np.where(np.isfinite(a), a, -np.inf)
+            with np.errstate(over="ignore", invalid="ignore"):
+                lam = np.exp(-0.5 * a * a - 0.5 * np.log(2 * np.pi) - log_ndtr(-a))
+            lam = np.where(np.isfinite(a), lam, 0.0)
+            a0 = np.where(np.isfinite(a), a, 0.0)
+            m2 = 1.0 + a0 * lam
+            m4 = 3.0 + (a0**3 + 3.0 * a0) * lam
+            mean += float(np.sum(m2))
+            var += float(np.sum(m4 - m2 * m2))
+        return mean, var
 
     @property
     def n_exact(self) -> int:

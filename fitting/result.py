@@ -10,6 +10,9 @@
        fitting.convergence; "ess_tail" {NAME: …} and "steps_needed" — what the stopping rule
        would need when a cap stopped the chain, else null — are added)
      "goodness": {"chi2", "dof", "chi2_red", "aic", "bic", "n"},
+       (and, where the exact rows were selected by reading above the detection limit — the
+       samples have dark rows — "chi2_expected" and "chi2_sd": χ²'s mean and sd given that
+       selection, fitting.likelihood.Likelihood.chi2_selected, which the χ² verdict uses)
      "n_samples", "wall_time_s",
      "fixed": {NAME: value},        (optional: parameters held fixed with --fix)
      "verdicts": [{"name", "status", "reason", "advice"}, …],   (optional, issue 18)

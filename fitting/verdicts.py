@@ -233,16 +233,31 @@ def _walker_list(idx: Sequence[int], limit: int = 5) -> str:
 
 # -- goodness of fit -----------------------------------------------------------------------------
 def chi2_verdict(goodness: Mapping[str, float]) -> dict:
-    """χ²/dof against 1 ± √(2/ν) (the χ²_ν/ν distribution's sd), ν = dof."""
+    """χ²/dof against 1 ± √(2/ν) (the χ²_ν/ν distribution's sd), ν = dof; or, where the exact
+    rows were selected by a threshold (goodness "chi2_expected", "chi2_sd"), χ² against that
+    expectation."""
     dof = goodness.get("dof")
     red = goodness.get("chi2_red")
     if not dof or dof <= 0 or red is None or not math.isfinite(red):
         return make_verdict(
             "chi2", "warning", "no degrees of freedom left: χ² cannot be judged", "add samples"
         )
-    sd = math.sqrt(2.0 / dof)
-    z = (red - 1.0) / sd
-    reason = f"χ²/dof = {red:.4g} with dof {dof}: {z:+.1f} sd from 1 (sd √(2/dof) = {sd:.2g})"
+    expected, spread = goodness.get("chi2_expected"), goodness.get("chi2_sd")
+    if expected and spread and math.isfinite(expected) and math.isfinite(spread) and expected > 0:
+        # rows selected by reading above the detection limit (fitting.fit._goodness): judge χ²
+        # against the truncated normal's mean and sd, in the units of the plain case
+        red = float(goodness["chi2"]) / expected
+        sd = spread / expected
+        z = (red - 1.0) / sd
+        reason = (
+            f"χ² = {goodness['chi2']:.4g} over {dof} dof of rows kept for reading above the "
+            f"detection limit, whose expectation is {expected:.4g} ± {spread:.3g}: ratio "
+            f"{red:.4g}, {z:+.1f} sd from 1"
+        )
+    else:
+        sd = math.sqrt(2.0 / dof)
+        z = (red - 1.0) / sd
+        reason = f"χ²/dof = {red:.4g} with dof {dof}: {z:+.1f} sd from 1 (sd √(2/dof) = {sd:.2g})"
     if abs(z) <= CHI2_Z_WARN:
         return make_verdict("chi2", "ok", reason)
     big = not (1 / CHI2_SIZE_FAIL**2 <= red <= CHI2_SIZE_FAIL**2)

@@ -38,31 +38,54 @@ class FormatError(SamplesError):
 @dataclass(frozen=True)
 class SigmaRule:
     """How σ is made for a source: ``kind`` = "column" (``value`` is the column name), "rel"
-    (σ = value·|f|, with a floor of value·median|f| so f ≈ 0 keeps a positive σ), "abs"
-    (σ = value, sr⁻¹) or "repeats" (σ of the mean of repeated rows)."""
+    (σ = value·|f| with a floor, below), "abs" (σ = value, sr⁻¹) or "repeats" (σ of the mean of
+    repeated rows).
+
+    The "rel" floor, per channel: the larger of value·median|f| (so f ≈ 0 keeps a positive σ) and
+    the RMS of the channel's negative values. Why the negatives: a relative error vanishes at
+    f = 0 where a real instrument's does not, and the values a source publishes below zero are
+    that error showing — for values whose truth is ≈ 0 they are the lower half of the noise,
+    whose mean square is σ² (a half-normal's second moment). Without that floor a published
+    −0.4 sr⁻¹ (RGL's golden-yellow blue, out-of-gamut RGB) would sit 50 σ from any
+    non-negative model; with it, the value is data of its own honest size (issue 43)."""
 
     kind: str
     value: float | str | None = None
 
     def describe(self) -> str:
         if self.kind == "rel":
-            return f"sigma = {self.value:g}·|f| (floor {self.value:g}·median|f|), assumed"
+            return (
+                f"sigma = {self.value:g}·|f| (floor per channel: the larger of "
+                f"{self.value:g}·median|f| and the RMS of its negative values), assumed"
+            )
         if self.kind == "abs":
             return f"sigma = {self.value:g} sr^-1, assumed"
         if self.kind == "repeats":
             return "sigma = standard error of the mean of repeated rows"
         return f"sigma from column {self.value!r}"
 
-    def apply(self, f: np.ndarray) -> np.ndarray:
-        """σ for values ``f`` under a "rel" or "abs" rule."""
+    def apply(self, f: np.ndarray, channel: np.ndarray | None = None) -> np.ndarray:
+        """σ for values ``f`` (of channels ``channel``; None: one channel) under a "rel" or
+        "abs" rule."""
         f = np.asarray(f, dtype=np.float64)
         if self.kind == "abs":
             return np.full(f.shape, float(self.value))
-        if self.kind == "rel":
-            finite = np.abs(f[np.isfinite(f)])
-            floor = float(self.value) * (float(np.median(finite)) if finite.size else 1.0)
-            return np.maximum(float(self.value) * np.abs(f), floor if floor > 0 else 1e-12)
-        raise ValueError(f"sigma rule {self.kind!r} needs the table, not only f")
+        if self.kind != "rel":
+            raise ValueError(f"sigma rule {self.kind!r} needs the table, not only f")
+        sigma = float(self.value) * np.abs(f)
+        groups = [slice(None)] if channel is None else [channel == c for c in np.unique(channel)]
+        for rows in groups:
+            sigma[rows] = np.maximum(sigma[rows], self.floor(f[rows]))
+        return sigma
+
+    def floor(self, f: np.ndarray) -> float:
+        """The "rel" rule's floor for one channel's values ``f`` (class docstring)."""
+        finite = f[np.isfinite(f)]
+        floor = float(self.value) * (float(np.median(np.abs(finite))) if finite.size else 1.0)
+        negative = finite[finite < 0]
+        if negative.size:
+            floor = max(floor, float(np.sqrt(np.mean(np.square(negative)))))
+        return floor if floor > 0 else 1e-12
 
 
 def parse_sigma(text: str, *, allow_column: bool = True) -> SigmaRule:

@@ -166,7 +166,7 @@ def read_csv_table(path: str | os.PathLike, options: CsvOptions | None = None) -
             path, cols, channel, values, flag_col
         )
     else:
-        sigma = options.sigma.apply(values)
+        sigma = options.sigma.apply(values, channel)
     conversion = {
         "reader": "brdfdata.formats.csv_table",
         "angles": options.angles,

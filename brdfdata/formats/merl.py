@@ -189,7 +189,9 @@ class MerlImportOptions:
 
 def import_merl(path: str | os.PathLike, options: MerlImportOptions | None = None) -> SampleTable:
     """A MERL file as a samples table: one row per (bin with data, channel); bins with no data
-    (negative raw value) are dropped and counted in the provenance."""
+    (negative raw value) are dropped and counted in the provenance. MERL's negatives are not
+    measurements: its BRDFRead.cpp and the dataset write −1 (before the scale) where a bin has
+    no data, so they are not kept as values the way RGL's are."""
     options = options or MerlImportOptions()
     if options.sigma.kind not in ("rel", "abs"):
         raise FormatError(f"{path}: a MERL file has no σ column; use --sigma rel=… or abs=…")

@@ -441,8 +441,9 @@ class RglImportOptions:
 
 
 def import_rgl(path: str | os.PathLike, options: RglImportOptions | None = None) -> SampleTable:
-    """An RGL file as a samples table (docs/design.md §4) with provenance metadata; negative
-    published values are kept with flag ``Flags.NEGATIVE``."""
+    """An RGL file as a samples table (docs/design.md §4) with provenance metadata; values
+    published below zero are data (flag ``Flags.NEGATIVE`` marks them for the record) and the
+    "rel" σ rule's floor sizes them (:class:`SigmaRule`)."""
     options = options or RglImportOptions()
     if options.sigma.kind not in ("rel", "abs"):
         raise FormatError(f"{path}: an RGL file has no σ column; use --sigma rel=… or abs=…")
@@ -468,6 +469,7 @@ def import_rgl(path: str | os.PathLike, options: RglImportOptions | None = None)
     n, c = f.shape
     values = f.T.ravel()  # channel-major: all of R, then G, then B
     flags = np.where(values < 0, Flags.NEGATIVE, 0).astype(np.int32)
+    channel = np.repeat(np.asarray(names, dtype=object), n).astype(str)
     conversion = {
         "reader": "brdfdata.formats.rgl (own implementation of Dupuy & Jakob 2018)",
         "directions": where,
@@ -478,6 +480,8 @@ def import_rgl(path: str | os.PathLike, options: RglImportOptions | None = None)
         "nodes_left_out": dropped,
         "negative_flagged": int((values < 0).sum()),
     }
+    if options.sigma.kind == "rel":
+        conversion["sigma_floor"] = {c: options.sigma.floor(values[channel == c]) for c in names}
     meta = provenance(path, "rgl", conversion)
     meta["gonio.absolute"] = "true"
     return SampleTable(
@@ -485,9 +489,9 @@ def import_rgl(path: str | os.PathLike, options: RglImportOptions | None = None)
         phi_i=np.tile(phi_i, c),
         theta_o=np.tile(theta_o, c),
         phi_o=np.tile(phi_o, c),
-        channel=np.repeat(np.asarray(names, dtype=object), n).astype(str),
+        channel=channel,
         f=values,
-        sigma=options.sigma.apply(values),
+        sigma=options.sigma.apply(values, channel),
         flags=flags,
         metadata=meta,
     )

@@ -3,7 +3,8 @@
 =============  ==========================================================================
 module         what it holds
 =============  ==========================================================================
-``table``      the table in memory: columns, flags, schema version, ``SamplesError``
+``table``      the table in memory: columns, flags and what each does, schema version,
+               ``SamplesError``
 ``guards``     the unit and range checks every source of samples passes (the contract's
                rules: degrees, below-horizon rows, σ ≤ 0, negative f, duplicates)
 ``files``      ``samples.parquet`` on disk: atomic whole and streamed writes, the checked read
@@ -26,12 +27,15 @@ from brdfdata.samples.files import (
 from brdfdata.samples.guards import GuardError, check_samples, merge_duplicates
 from brdfdata.samples.table import (
     CHANNELS,
+    FLAG_ROLES,
     OPTIONAL_COLUMNS,
     REQUIRED_COLUMNS,
     SCHEMA_VERSION,
     Flags,
+    RowKinds,
     SamplesError,
     SampleTable,
+    row_kinds,
 )
 
 __all__ = [
@@ -40,6 +44,9 @@ __all__ = [
     "OPTIONAL_COLUMNS",
     "CHANNELS",
     "Flags",
+    "FLAG_ROLES",
+    "RowKinds",
+    "row_kinds",
     "SampleTable",
     "SamplesError",
     "GuardError",

@@ -22,6 +22,11 @@ __all__ = [
     "CHANNELS",
     "FORMAT_NAMES",
     "Flags",
+    "FLAG_ROLES",
+    "EXCLUDING",
+    "CENSORING",
+    "RowKinds",
+    "row_kinds",
     "SampleTable",
     "SamplesError",
 ]
@@ -50,14 +55,63 @@ FORMAT_NAMES = {"rgl": "an RGL tensor", "merl": "a MERL .binary", "csv": "a deli
 
 
 class Flags:
-    """Bitmask values of the `flags` column (0 = good)."""
+    """Bitmask values of the `flags` column (0 = good). What each bit does to a row is
+    :data:`FLAG_ROLES`, the one table every reader of the flags applies."""
 
     SATURATED = 1
     DARK = 2
     BELOW_HORIZON = 4
     MASKED = 8
-    #: A published value below zero (e.g. out-of-gamut RGB in an RGL file), kept for the record.
+    #: A value published below zero (e.g. out-of-gamut RGB in an RGL file): a measurement,
+    #: marked for the record; it enters fits as any other value.
     NEGATIVE = 16
+
+
+#: What each flag bit does to a row, for the likelihood, the binned path, the verdicts, the
+#: report and the guards alike (docs/formats.md prints this table):
+#: "exclude" — the row never enters a fit (nothing was measured there);
+#: "censor" — the row enters as a bound (the Tobit likelihood, fitting.likelihood): a saturated
+#: reading bounds the truth from below, a dark one says the reading fell below the detection
+#: limit; with ``gonio fit --drop-flagged`` they are left out instead;
+#: "keep" — the row enters as the measured value it is (a mark for the record).
+#: Bits not listed (another tool's) keep their row. Of several bits, exclude beats censor beats
+#: keep; saturated beats dark.
+FLAG_ROLES: dict[int, tuple[str, str, str]] = {
+    # bit: (name, role, meaning)
+    Flags.SATURATED: ("saturated", "censor", "the reading hit the clip level: truth above it"),
+    Flags.DARK: ("dark", "censor", "the reading fell below the detection limit min_snr·σ"),
+    Flags.BELOW_HORIZON: ("below horizon", "exclude", "θ > π/2: f_r is 0 by convention"),
+    Flags.MASKED: ("masked", "exclude", "off the sample or not measured"),
+    Flags.NEGATIVE: ("negative", "keep", "a value published below zero, within its noise"),
+}
+EXCLUDING = sum(bit for bit, (_, role, _) in FLAG_ROLES.items() if role == "exclude")
+CENSORING = sum(bit for bit, (_, role, _) in FLAG_ROLES.items() if role == "censor")
+
+
+@dataclass(frozen=True)
+class RowKinds:
+    """Per row: whether it can enter a fit at all (no excluding bit; finite angles, f and σ;
+    σ > 0), and of those which are censored saturated or dark; the rest enter as measured."""
+
+    usable: np.ndarray
+    saturated: np.ndarray
+    dark: np.ndarray
+
+    @property
+    def measured(self) -> np.ndarray:
+        return self.usable & ~self.saturated & ~self.dark
+
+
+def row_kinds(table: SampleTable) -> RowKinds:
+    """:data:`FLAG_ROLES` applied to ``table``'s rows."""
+    flags = np.asarray(table.flags, np.int64)
+    sat = (flags & Flags.SATURATED) != 0
+    dark = ((flags & Flags.DARK) != 0) & ~sat
+    usable = (flags & EXCLUDING) == 0
+    usable &= np.isfinite(table.f) & np.isfinite(table.sigma) & (table.sigma > 0)
+    for a in (table.theta_i, table.phi_i, table.theta_o, table.phi_o):
+        usable &= np.isfinite(a)
+    return RowKinds(usable, sat, dark)
 
 
 class SamplesError(UserError, ValueError):
@@ -122,6 +176,6 @@ class SampleTable:
         )
 
     def good(self) -> SampleTable:
-        """Rows with flags == 0 and finite values and positive σ."""
-        ok = (self.flags == 0) & np.isfinite(self.f) & np.isfinite(self.sigma) & (self.sigma > 0)
-        return self.select(ok)
+        """The rows a fit takes as measured values (:func:`row_kinds`: no excluding or censoring
+        flag, finite values, positive σ)."""
+        return self.select(row_kinds(self).measured)

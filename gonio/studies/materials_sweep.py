@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from acquisition.config import PlanConfig
+from brdfdata.samples import row_kinds
 from fitting.mcmc import ConvergenceTarget
 from gonio.studies.common import load_average, read_typed_rows, sim_rig, write_rows
 from gonio.studies.materials_models import MODELS, NEW_MODELS, ModelSpec
@@ -252,7 +253,7 @@ def _in_plane_slice(table, theta_i_deg: float, channel: str, tol_deg: float = SL
         (table.channel.astype(str) == channel)
         & (np.abs(table.theta_i - ti) < np.radians(tol_deg))
         & (off < np.radians(tol_deg))
-        & (table.flags == 0)
+        & row_kinds(table).measured
     )
     sign = np.where(np.cos(dphi[sel]) < 0, 1.0, -1.0)
     return np.degrees(sign * table.theta_o[sel]), table.f[sel], table.sigma[sel]

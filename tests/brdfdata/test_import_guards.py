@@ -90,9 +90,11 @@ CASES = {
         lambda c: {k: np.concatenate([v, v[:7]]) for k, v in c.items()},
         ["14 row(s) in 7 group(s)", "--merge-duplicates"],
     ),
+    # σ = 0.01: −0.06 is 6σ below zero, beyond z_max = 5 for 120 rows (guards module
+    # docstring); a value within its noise below zero is data (test_negative_within_noise_*)
     "negative_f": (
-        lambda c: {**c, "f": np.where(np.arange(c["f"].size) == 8, -0.01, c["f"])},
-        ["column f", "1 row(s) with f < 0", "first: row 8", "flags bit 16"],
+        lambda c: {**c, "f": np.where(np.arange(c["f"].size) == 8, -0.06, c["f"])},
+        ["column f", "1 row(s) more than 5σ below zero", "first: row 8", "sign or offset"],
     ),
 }
 
@@ -131,16 +133,30 @@ def test_degrees_accepted_with_angles_deg(tmp_path) -> None:
         check_samples(read_csv_table(csv), "deg.csv")
 
 
-def test_flagged_rows_may_hold_anything(tmp_path) -> None:
+def test_excluded_and_censored_rows_may_hold_anything(tmp_path) -> None:
     cols = _lambert_rows()
     cols["theta_o"][:3] = 1.9
     cols["sigma"][3:6] = 0.0
     cols["f"][6:9] = -1.0
     flags = np.zeros(cols["f"].size, np.int32)
-    flags[:3], flags[3:6], flags[6:9] = Flags.BELOW_HORIZON, Flags.DARK, Flags.NEGATIVE
+    flags[:3], flags[3:6], flags[6:9] = Flags.BELOW_HORIZON, Flags.DARK, Flags.MASKED
     path = _write_parquet(tmp_path / "t.parquet", {**cols, "flags": flags})
     table = read_samples(path)
     assert len(table) == cols["f"].size and len(table.good()) == cols["f"].size - 9
+
+
+def test_negative_within_noise_is_data_and_flag_16_does_not_hide_an_error(tmp_path) -> None:
+    """f < 0 within its σ passes unflagged and is fitted; flag 16 marks a row and keeps it, so
+    a value no noise explains is refused with or without it (FLAG_ROLES: 16 is "keep")."""
+    cols = _lambert_rows()
+    cols["f"][:5] = -0.02  # 2σ below zero: an honest noisy value near a dark part
+    table = read_samples(_write_parquet(tmp_path / "ok.parquet", cols))
+    assert len(table.good()) == cols["f"].size
+    cols["f"][5] = -1.0  # 100σ below zero
+    flags = np.zeros(cols["f"].size, np.int32)
+    flags[5] = Flags.NEGATIVE
+    with pytest.raises(GuardError, match="1 row.*below zero.*first: row 5"):
+        read_samples(_write_parquet(tmp_path / "bad.parquet", {**cols, "flags": flags}))
 
 
 def _dedup_by_hand(cols, groups):

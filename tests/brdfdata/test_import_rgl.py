@@ -120,10 +120,15 @@ def test_negative_values_are_kept_and_flagged(tmp_path) -> None:
     assert np.all(ref[neg & (wi[:, 2:3] < 1)] < 0)  # the same values are negative in Mitsuba
     meta = json.loads(table.metadata["gonio.source.conversion"])
     assert meta["negative_flagged"] == int(neg.sum())
-    # The written table passes the guards (flagged negatives are allowed) and fits skip them.
+    # The written table passes the guards and fits keep them as data (FLAG_ROLES: 16 keeps its
+    # row): the σ rule's floor, the RMS of the channel's negatives, puts each within its noise.
     out = write_samples(tmp_path / "s.parquet", table)
     back = read_samples(out)
-    assert len(back.good()) == len(table) - int(neg.sum())
+    assert len(back.good()) == len(table)
+    blue = table.channel == "B"
+    floor = np.sqrt(np.mean(np.square(table.f[blue & (table.f < 0)])))
+    assert meta["sigma_floor"]["B"] == pytest.approx(floor, rel=1e-12)
+    assert np.all(table.sigma[blue] >= floor) and np.min(table.f / table.sigma) > -3
 
 
 def test_random_directions_agree_with_mitsuba() -> None:

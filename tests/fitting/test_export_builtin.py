@@ -21,7 +21,7 @@ import pytest
 
 from brdfdata.directions import isotropic_gonio_directions
 from brdfdata.formats.rgl import load_rgl
-from brdfdata.samples import Flags, write_samples
+from brdfdata.samples import write_samples
 from fitting.export import export_material, fit_evaluator
 from fitting.fit import FitOptions, fit_samples
 from simulator.scene import (
@@ -195,9 +195,7 @@ def test_cli_fix_eta_k_exports_instead_of_internal_error(tmp_path, monkeypatch, 
     material, options, _ = CASES["roughconductor"]
     wi, wo = isotropic_gonio_directions()
     table, _ = direct_samples(material, wi, wo, rel_sigma=0.01, floor_sr=1e-3, rng=3)
-    # Noise around f ≈ 0 goes negative: flag it, as calibration flags dark samples (the
-    # guards refuse unflagged f < 0).
-    table.flags[table.f < 0] |= Flags.DARK
+    # Noise around f ≈ 0 goes negative: that is data (issue 43), kept as it is.
     write_samples(tmp_path / "s.parquet", table)
     argv = ["gonio", "fit", str(tmp_path / "s.parquet"), "--no-mcmc", "--fix", "eta=0.2",
             "--fix", "k=3.9", "--fix", "kd=0", "--option", "fresnel=conductor",
