@@ -37,10 +37,22 @@ __all__ = [
     "ensemble_draws",
     "diagnose",
     "TAIL_PROB",
+    "TAU_LENGTHS",
 ]
 
 #: Tail ESS: the smaller of the ESS of the 5 % and 95 % quantiles' indicators (the paper's).
 TAIL_PROB = 0.05
+
+#: The chain must be this many (largest) τ long before its R̂ and ESS are judged, τ being
+#: emcee's integrated autocorrelation time (Sokal's window). What τ decides is the burn-in
+#: (3 τ) and the steps a capped chain still needs; the ESS judged is ArviZ's, from its own
+#: autocorrelation estimate across the chains, not from τ. Shorter than ~15 τ emcee's estimate
+#: reads far low (a 100-step chain: τ ≈ 8 where the long run's is 30, benchmarks/
+#: bench_peers_sampler.py --quick); at 20 τ it reads ~20 % low (the quick demo's chain: 24.6–
+#: 28.6 at 760 steps against 27–37 at 1500), which moves a 3 τ burn-in by < τ. emcee's own
+#: advice, 50 τ, is for τ itself to be accurate; held as a gate, it doubled the demo's chain
+#: (≈ 1900 steps, where R̂ < 1.01 and ESS ≥ 400 held from ≈ 1000) without changing a verdict.
+TAU_LENGTHS = 20
 
 
 @dataclass(frozen=True)

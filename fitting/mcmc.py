@@ -7,8 +7,9 @@
 * It runs in chunks until its own stopping rule holds, with ``max_steps`` and the time budget
   as caps. After each chunk the integrated autocorrelation time τ_k of every parameter is
   estimated with ``get_autocorr_time(tol=0)`` (Sokal's automatic window). Once the chain is
-  longer than 50·τ_k for every k and τ changed by less than 5 % since the last check (emcee's
-  criterion: from then on τ, the burn-in and the ESS can be trusted), the post-burn chain's
+  at least ``MIN_TAU_LENGTHS`` = 20 τ_k long for every k (fitting.convergence.TAU_LENGTHS: from
+  then on τ and the burn-in can be trusted; emcee's stricter 50 τ is for τ's own accuracy and
+  doubled the demo's chain), the post-burn chain's
   rank-normalised R̂ and bulk and tail ESS (fitting.convergence: Vehtari et al. 2021, by
   ArviZ) are checked against ``target`` (R̂ < 1.01, ESS ≥ 400): it stops as *converged* when
   they hold, and runs on otherwise. ``stop_reason`` says why it stopped ("converged",
@@ -42,7 +43,7 @@ import emcee
 import numpy as np
 
 from fitting.chain_file import load_chain, save_chain
-from fitting.convergence import ConvergenceTarget, Diagnostics, diagnose
+from fitting.convergence import TAU_LENGTHS, ConvergenceTarget, Diagnostics, diagnose
 from fitting.moves import MOVES, named_moves
 from plumbing.errors import UserError
 from plumbing.progress import Progress
@@ -62,10 +63,10 @@ __all__ = [
     "MIN_TAU_LENGTHS",
 ]
 
-#: A ``target_ess`` stop needs a chain at least this many (largest) τ long: emcee's τ from
-#: shorter chains is biased low, and the ESS with it. (32 walkers reach ESS 1000 at 31 τ, so the
-#: usual target is unaffected; a small target no longer stops a chain after 3 τ.)
-MIN_TAU_LENGTHS = 20
+#: Every stop by the chain's own rule needs a chain at least this many (largest) τ long
+#: (fitting.convergence.TAU_LENGTHS says why 20): emcee's τ from shorter chains is biased low,
+#: and the burn-in and a ``target_ess`` count with it.
+MIN_TAU_LENGTHS = TAU_LENGTHS
 
 
 class ChainFileError(UserError, ValueError):
@@ -293,7 +294,6 @@ def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool, store=N
     max_steps, chunk = opt.max_steps, opt.chunk
     bar = Progress("MCMC", max_steps, completed=sampler.iteration, enabled=progress, transient=True)
     stop_reason = "max_steps"
-    tau_prev = None
     tau = np.full(sampler.ndim, np.nan)
     saved = sampler.iteration
 
@@ -316,8 +316,7 @@ def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool, store=N
             bar.update(completed=sampler.iteration)
             tau = sampler.get_autocorr_time(tol=0)
             it = sampler.iteration
-            stable = tau_prev is not None and np.all(np.abs(tau - tau_prev) < 0.05 * tau)
-            if np.all(np.isfinite(tau)) and np.all(it > 50 * tau) and stable:
+            if np.all(np.isfinite(tau)) and it >= MIN_TAU_LENGTHS * np.max(tau):
                 # τ is trusted now: the rule's R̂ and ESS on the post-burn chain (fitting.
                 # convergence; checked only from here, so most fits compute them once).
                 d = diagnose([sampler.get_chain(discard=_burn(tau, it))])
@@ -327,9 +326,7 @@ def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool, store=N
             # The ESS is only as good as τ: from a chain a few τ long emcee's estimate reads low
             # (a 100-step chain gave τ ≈ 8 where the long run's is 30, so "ESS 256" was 46 by
             # NumPyro's estimator, R̂ 1.47: benchmarks/bench_peers_sampler.py --quick). So the
-            # target counts only on a chain ≥ MIN_TAU_LENGTHS τ long. (Not also "τ stable within
-            # 5 %", as "converged" asks: on the benchmark posterior that held the stop back until
-            # 50 τ, ~3× the steps.)
+            # target counts only on a chain ≥ MIN_TAU_LENGTHS τ long.
             if (
                 opt.target_ess is not None
                 and np.all(np.isfinite(tau))
@@ -339,7 +336,6 @@ def _sample(sampler, start, opt: McmcOptions, t0: float, progress: bool, store=N
                 if np.min((it - burn_now) * walkers / tau) >= opt.target_ess:
                     stop_reason = "target_ess"
                     break
-            tau_prev = tau
             # Checked after a chunk so even a tiny budget yields a (short) chain.
             if opt.time_budget_s is not None and time.perf_counter() - t0 > opt.time_budget_s:
                 stop_reason = "time_budget"
@@ -381,8 +377,8 @@ def _result(sampler, tau, stop_reason: str, t0: float, target: ConvergenceTarget
         ess_tail=d.ess_tail,
     )
     if stop_reason in ("max_steps", "time_budget"):
-        # the rule's R̂ and ESS, and the 50 τ from which τ (and so the ESS) is trusted
-        length = int(math.ceil(50 * np.max(tau))) if np.all(np.isfinite(tau)) else 0
+        # the rule's R̂ and ESS, and the MIN_TAU_LENGTHS τ from which τ is trusted
+        length = int(math.ceil(MIN_TAU_LENGTHS * np.max(tau))) if np.all(np.isfinite(tau)) else 0
         needed = max(d.steps_to(target, it) or 0, length)
         res.steps_needed = needed if needed > it else None
     return res

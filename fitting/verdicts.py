@@ -5,7 +5,7 @@ Each verdict is a dict ``{"name", "status", "reason", "advice"}``: ``status`` is
 what to do ("" when ok). :func:`judge` gives, in this order:
 
 * ``convergence`` — rank-normalised R̂ (fail > 1.1, warning > 1.01), bulk and tail ESS (fail
-  < 100, warning < 400; fitting.convergence), chain length against 50 τ, stuck walkers
+  < 100, warning < 400; fitting.convergence), chain length against 20 τ, stuck walkers
   (acceptance far below the ensemble's, or never moving) and lost walkers (typical ln p far
   below the ensemble's best). The sampler runs until R̂ and ESS meet their targets by itself
   (fitting.mcmc), so a warning here means a cap (--steps, --time-budget) stopped it first —
@@ -32,6 +32,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from scipy.stats import chi2 as _chi2
 
+from fitting.convergence import TAU_LENGTHS
 from fitting.mismatch import REGION_MIN_SAMPLES, exact_regions, region_label
 from fitting.priors import DISCREPANCY, ParameterSpec
 
@@ -76,8 +77,9 @@ RHAT_WARN = 1.01
 ESS_FAIL = 100.0
 #: Vehtari et al. 2021 recommend ESS ≥ 400 for stable R̂ and tail quantiles.
 ESS_WARN = 400.0
-#: emcee's documentation: τ (and so ESS) is only reliable once the chain is longer than 50 τ.
-TAU_LENGTH = 50.0
+#: The chain's length in τ before τ (and the burn-in from it) is trusted: fitting.convergence's
+#: TAU_LENGTHS (20; why not emcee's 50 is said there).
+TAU_LENGTH = float(TAU_LENGTHS)
 #: A walker is *stuck* when its acceptance fraction is below this fraction of the ensemble's
 #: median. All walkers of an ensemble share one proposal, so in a mixed ensemble their
 #: acceptance differs only by counting noise (≤ 0.5/√N, < 0.02 for N ≥ 600 steps) and by
@@ -162,7 +164,7 @@ def walker_health(chain: np.ndarray, log_prob: np.ndarray) -> tuple[list[int], l
 def mcmc_verdict(mcmc, names: Sequence[str]) -> tuple[dict, list[str], str]:
     """(verdict, failed criteria, "converged_because" line) of an MCMC result (None: no MCMC).
 
-    Criteria: R̂ < 1.01, ESS ≥ 400, chain ≥ 50 τ, no stuck and no lost walkers. A fail is
+    Criteria: R̂ < 1.01, ESS ≥ 400, chain ≥ 20 τ, no stuck and no lost walkers. A fail is
     R̂ > 1.1, ESS < 100, or more than 10 % of the walkers stuck or lost."""
     if mcmc is None:
         v = make_verdict(
@@ -194,14 +196,16 @@ def mcmc_verdict(mcmc, names: Sequence[str]) -> tuple[dict, list[str], str]:
     elif not e_min >= ESS_WARN:
         warns.append(("ess", f"ESS {e_min:.0f} < {ESS_WARN:.0f} ({e_name}, bulk or tail)"))
     if not n_iter >= TAU_LENGTH * t_max:
-        warns.append(("length", f"chain {n_iter} < 50τ = {TAU_LENGTH * t_max:.0f} ({t_name})"))
+        warns.append(
+            ("length", f"chain {n_iter} < {TAU_LENGTH:.0f}τ = {TAU_LENGTH * t_max:.0f} ({t_name})")
+        )
     for label, bad in (("stuck", stuck), ("lost", lost)):
         if bad:
             text = f"{len(bad)} of {walkers} walkers {label} ({_walker_list(bad)})"
             (fails if len(bad) > WALKER_FAIL_FRACTION * walkers else warns).append((label, text))
     met = (
         f"R̂ max {r_max:.4g} < {RHAT_WARN}, ESS (bulk and tail) min {e_min:.0f} ≥ {ESS_WARN:.0f}, "
-        f"chain {n_iter} ≥ 50τ ({TAU_LENGTH * t_max:.0f}), no stuck or lost walkers"
+        f"chain {n_iter} ≥ {TAU_LENGTH:.0f}τ ({TAU_LENGTH * t_max:.0f}), no stuck or lost walkers"
     )
     failed_names = [k for k, _ in fails + warns]
     if not fails and not warns:

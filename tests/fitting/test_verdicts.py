@@ -114,10 +114,10 @@ def test_lost_walker_is_named() -> None:
 def test_short_chain_and_no_mcmc_are_warnings() -> None:
     chain, lp = _iid(n=300)
     res = _result(chain, lp)
-    res.tau = np.array([10.0, 1.0])  # 300 steps < 50 τ = 500
+    res.tau = np.array([20.0, 1.0])  # 300 steps < 20 τ = 400
     res.ess = np.array([960.0, 9600.0])
     v, failed, _ = mcmc_verdict(res, ["a", "b"])
-    assert v["status"] == "warning" and failed == ["length"] and "50τ" in v["reason"]
+    assert v["status"] == "warning" and failed == ["length"] and "20τ" in v["reason"]
     v, failed, because = mcmc_verdict(None, ["a"])
     assert v["status"] == "warning" and failed == ["mcmc"] and "Laplace" in v["reason"]
 
