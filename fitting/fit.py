@@ -301,15 +301,7 @@ def fit_samples(
         extras["mcmc"] = res
         extras["notes"] = _chain_notes(res, h5)
     else:
-        x_map = x_lsq
-        draws = None
-        if lik.censor and any(bool(d.kind.any()) for d in lik.data):
-            found = _censored_laplace(lik, x_lsq, lsq.cov)
-            if found is not None:
-                x_map, cov = found
-                draws = _laplace_sample(space, x_map, cov, rng, 4000)
-        if draws is None:
-            draws = _laplace_draws(lik, lsq, x_lsq, opt, rng)
+        x_map, draws = _no_mcmc_draws(lik, lsq, x_lsq, opt, rng)
         diagnostics = {
             "tau": {},
             "ess": {},
@@ -592,6 +584,17 @@ def _laplace_draws(lik, lsq, x_lsq, opt: FitOptions, rng) -> np.ndarray:
         r = lik.residuals(x_lsq, "sigma")
         cov = cov * max(1.0, float(np.sum(r**2)) / max(lik.n_exact - space.ndim, 1))
     return _laplace_sample(space, x_lsq, cov, rng, 4000)
+
+
+def _no_mcmc_draws(lik, lsq, x_lsq, opt: FitOptions, rng) -> tuple[np.ndarray, np.ndarray]:
+    """(the point estimate, draws) of a fit without MCMC: the Laplace approximation at the
+    least-squares optimum, or — with censored rows, which least squares leaves out — at the
+    maximum of ln p (:func:`_censored_laplace`)."""
+    if lik.censor and any(bool(d.kind.any()) for d in lik.data):
+        found = _censored_laplace(lik, x_lsq, lsq.cov)
+        if found is not None:
+            return found[0], _laplace_sample(lik.space, found[0], found[1], rng, 4000)
+    return x_lsq, _laplace_draws(lik, lsq, x_lsq, opt, rng)
 
 
 def _censored_laplace(lik, x0: np.ndarray, cov0) -> tuple[np.ndarray, np.ndarray] | None:
