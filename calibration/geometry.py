@@ -222,7 +222,7 @@ def _ray_row(r, rays, out):
 def _rays_par(rays, out):
     """`_ray_row` for every row, rows in parallel (each pixel's arithmetic is its own)."""
     for r in numba.prange(rays[0].shape[0]):
-        _ray_row(r, rays, out)
+        _ray_row(np.int64(r), rays, out)  # int64 as the serial twin's: one compiled helper
 
 
 @numba.njit(cache=True, nogil=True)

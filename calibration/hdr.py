@@ -527,7 +527,10 @@ def _merge_par(frames, field, out):
     h = frames[0].shape[1]
     n_bands = (h + _BAND_ROWS - 1) // _BAND_ROWS
     for b in numba.prange(n_bands):
-        _merge_band(frames, field, out, b * _BAND_ROWS, min((b + 1) * _BAND_ROWS, h))
+        # int64 rows, as the serial twin passes them (prange's index is unsigned): one compiled
+        # _merge_band for both, not a second ~15 CPU-s compile of its whole call tree
+        y0 = np.int64(b * _BAND_ROWS)
+        _merge_band(frames, field, out, y0, np.int64(min(y0 + _BAND_ROWS, h)))
 
 
 @numba.njit(cache=True, nogil=True)

@@ -348,11 +348,13 @@ SEARCH_ROWS = 10_000
 
 
 def _search_then_polish(table: SampleTable, lik: Likelihood, opt: FitOptions, setup: FitSetup):
-    """The least-squares fit of `lik`: the multi-start search on all rows of a table up to
-    SEARCH_ROWS, else on a seeded random subsample of that size, polished from its best start
-    on all rows."""
+    """The least-squares fit of `lik`: the multi-start search on a seeded random subsample of
+    SEARCH_ROWS rows, polished from its best start on all rows — where that is less work than
+    the search on all rows: K starts on n rows cost ≈ K·n, the subsample's K·S + n (the polish
+    about one start), so it pays when n (K − 1) > K·S (two starts: above 2·S rows)."""
     kw = {"weighting": opt.weighting, "loss": opt.loss, "seed": opt.seed}
-    if opt.n_starts <= 1 or len(table) <= SEARCH_ROWS:
+    k = opt.n_starts
+    if k <= 1 or len(table) * (k - 1) <= k * SEARCH_ROWS:
         return fit_least_squares(lik, n_starts=opt.n_starts, **kw)
     pick = np.random.default_rng(opt.seed).choice(len(table), SEARCH_ROWS, replace=False)
     keep = np.zeros(len(table), dtype=bool)

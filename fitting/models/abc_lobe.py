@@ -115,7 +115,7 @@ def _abc_block(geo, kd, ks, w, c, b2, q, k, rs, cs, p, log_out, out, blk, n_chun
 def _abc_par(geo, kd, ks, w, c, b2, q, k, rs, cs, p, log_out, out):
     n_chunks = (out.shape[1] + km.CHUNK - 1) // km.CHUNK
     for blk in prange(out.shape[0] * n_chunks):
-        _abc_block(geo, kd, ks, w, c, b2, q, k, rs, cs, p, log_out, out, blk, n_chunks)
+        _abc_block(geo, kd, ks, w, c, b2, q, k, rs, cs, p, log_out, out, np.int64(blk), n_chunks)
 
 
 @njit(cache=True)

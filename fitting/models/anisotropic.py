@@ -181,7 +181,7 @@ def _aniso_row(wi, wo, geo, j):
 @njit(parallel=True, cache=True)
 def _aniso_geometry_par(wi, wo, geo):
     for j in prange(wi.shape[0]):
-        _aniso_row(wi, wo, geo, j)
+        _aniso_row(wi, wo, geo, np.int64(j))
 
 
 @njit(cache=True)
@@ -497,7 +497,7 @@ def _any_block(geo, pt, rs, cs, kind, c1, c2, c3, log_out, out, b, n_chunks):
 def _kernel_par(geo, pt, rs, cs, kind, c1, c2, c3, log_out, out):
     n_chunks = (out.shape[1] + km.CHUNK - 1) // km.CHUNK
     for b in prange(out.shape[0] * n_chunks):
-        _any_block(geo, pt, rs, cs, kind, c1, c2, c3, log_out, out, b, n_chunks)
+        _any_block(geo, pt, rs, cs, kind, c1, c2, c3, log_out, out, np.int64(b), n_chunks)
 
 
 @njit(cache=True)

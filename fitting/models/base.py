@@ -181,10 +181,11 @@ def flat_parameters(cols: Mapping, out: np.ndarray) -> tuple[dict[str, np.ndarra
         k: (as_2d(np.asarray(c, dtype=np.float64), rows, n) if np.ndim(c) < 2 else c)
         for k, c in cols.items()
     }
+    # Fresh writable float64 copies: a read-only view (a broadcast, a caller's frozen array)
+    # would make numba compile the kernel once more for each mix of read-only inputs.
     if any(c.shape[1] != 1 for c in cols.values()):
-        flat = {k: np.broadcast_to(c, out.shape).ravel() for k, c in cols.items()}
-        return {k: np.ascontiguousarray(v) for k, v in flat.items()}, True
-    return {k: np.ascontiguousarray(c[:, 0]) for k, c in cols.items()}, False
+        return {k: np.array(np.broadcast_to(c, out.shape)).ravel() for k, c in cols.items()}, True
+    return {k: np.array(c[:, 0], dtype=np.float64) for k, c in cols.items()}, False
 
 
 def parallel_geometry(out: np.ndarray, kernel: str) -> bool:

@@ -61,7 +61,7 @@ def _lobe_row(wi, wo, kind, geo, j):
 def _lobe_geometry_par(wi, wo, kind):
     geo = np.zeros((2, wi.shape[0]))
     for j in prange(wi.shape[0]):
-        _lobe_row(wi, wo, kind, geo, j)
+        _lobe_row(wi, wo, kind, geo, np.int64(j))
     return geo
 
 
@@ -147,7 +147,7 @@ def _lobe_block(geo, pt, rs, cs, log_out, out, b, n_chunks):
 def _lobe_par(geo, pt, rs, cs, log_out, out):
     n_chunks = (out.shape[1] + CHUNK - 1) // CHUNK
     for b in prange(out.shape[0] * n_chunks):
-        _lobe_block(geo, pt, rs, cs, log_out, out, b, n_chunks)
+        _lobe_block(geo, pt, rs, cs, log_out, out, np.int64(b), n_chunks)
 
 
 @njit(cache=True)
@@ -182,7 +182,7 @@ def _constant_row(value, cs, above, fill, out, w):
 @njit(parallel=True, cache=True)
 def _constant_par(value, cs, above, fill, out):
     for w in prange(out.shape[0]):
-        _constant_row(value, cs, above, fill, out, w)
+        _constant_row(value, cs, above, fill, out, np.int64(w))
 
 
 @njit(cache=True)

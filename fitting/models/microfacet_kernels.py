@@ -111,7 +111,7 @@ def _geometry_row(wi, wo, geo, j):
 @njit(parallel=True, cache=True)
 def _microfacet_geometry_par(wi, wo, geo):
     for j in prange(wi.shape[0]):
-        _geometry_row(wi, wo, geo, j)
+        _geometry_row(wi, wo, geo, np.int64(j))
 
 
 @njit(cache=True)
@@ -525,7 +525,9 @@ def _ts_block(geo, pt, dist, shadow, fresnel, log_out, out, b, n_chunks):
 def _ts_par(geo, pt, dist, shadow, fresnel, log_out, out):
     n_chunks = (out.shape[1] + CHUNK - 1) // CHUNK
     for b in prange(out.shape[0] * n_chunks):
-        _ts_block(geo, pt, dist, shadow, fresnel, log_out, out, b, n_chunks)
+        # prange's index is unsigned; as int64 the helper is the one the serial twin compiled
+        # (every prange loop of the model kernels does this: one compile, not two)
+        _ts_block(geo, pt, dist, shadow, fresnel, log_out, out, np.int64(b), n_chunks)
 
 
 @njit(cache=True)

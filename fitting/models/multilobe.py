@@ -258,7 +258,7 @@ def _block(geo, pt, rs, cs, d1, d2, lobes, shadow, fresnel, log_out, out, b, n_c
 def _par(geo, pt, rs, cs, d1, d2, lobes, shadow, fresnel, log_out, out):
     n_chunks = (out.shape[1] + km.CHUNK - 1) // km.CHUNK
     for b in prange(out.shape[0] * n_chunks):
-        _block(geo, pt, rs, cs, d1, d2, lobes, shadow, fresnel, log_out, out, b, n_chunks)
+        _block(geo, pt, rs, cs, d1, d2, lobes, shadow, fresnel, log_out, out, np.int64(b), n_chunks)
 
 
 @njit(cache=True)

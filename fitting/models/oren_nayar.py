@@ -156,7 +156,7 @@ def _k_row(wi, wo, st, ct, cp, sp, kt, j):
 def _k_table_par(wi, wo, st, ct, cp, sp):
     kt = np.zeros((st.size, wi.shape[0]))
     for j in prange(wi.shape[0]):
-        _k_row(wi, wo, st, ct, cp, sp, kt, j)
+        _k_row(wi, wo, st, ct, cp, sp, kt, np.int64(j))
     return kt
 
 
@@ -244,7 +244,7 @@ def _on_row(wi, wo, geo, j):
 def _on_geometry_par(wi, wo):
     geo = np.zeros((_O_ROWS, wi.shape[0]))
     for j in prange(wi.shape[0]):
-        _on_row(wi, wo, geo, j)
+        _on_row(wi, wo, geo, np.int64(j))
     return geo
 
 
@@ -297,7 +297,7 @@ def _on_block(geo, rho, sig, rs, cs, form, inter, log_out, out, b, n_chunks):
 def _on_par(geo, rho, sig, rs, cs, form, inter, log_out, out):
     n_chunks = (out.shape[1] + km.CHUNK - 1) // km.CHUNK
     for b in prange(out.shape[0] * n_chunks):
-        _on_block(geo, rho, sig, rs, cs, form, inter, log_out, out, b, n_chunks)
+        _on_block(geo, rho, sig, rs, cs, form, inter, log_out, out, np.int64(b), n_chunks)
 
 
 @njit(cache=True)

@@ -147,7 +147,9 @@ class PhongFamily(Model):
         if per_sample:  # one table row per (set, sample)
             flat = {k: np.broadcast_to(c, out.shape).ravel() for k, c in cols.items()}
         else:
-            flat = {k: np.ascontiguousarray(c[:, 0]) for k, c in cols.items()}
+            # fresh writable float64 copies (W values each): a read-only view would make numba
+            # compile ts_parameter_table once more per combination of read-only inputs
+            flat = {k: np.array(c[:, 0], dtype=np.float64) for k, c in cols.items()}
         table = lk.lobe_parameter_table(flat["kd"], flat["ks"], flat["n"], self._kind)
         lk.lobe(geo, table, per_sample, log, out)
 
@@ -213,7 +215,9 @@ class TorranceSparrow(Model):
         cols["p2"] = as_2d(p2, *out.shape) if p2.ndim < 2 else p2
         geo = mk.microfacet_geometry(wi, wo, parallel_geometry(out, "ts"), out.dtype)
         if all(c.shape[1] == 1 for c in cols.values()):
-            flat = {k: np.ascontiguousarray(c[:, 0]) for k, c in cols.items()}
+            # fresh writable float64 copies (W values each): a read-only view would make numba
+            # compile ts_parameter_table once more per combination of read-only inputs
+            flat = {k: np.array(c[:, 0], dtype=np.float64) for k, c in cols.items()}
             kernel = mk.torrance_sparrow
         else:  # some parameter varies per sample: one table row per (set, sample)
             flat = {k: np.broadcast_to(c, out.shape).ravel() for k, c in cols.items()}

@@ -317,7 +317,7 @@ def test_search_on_a_subsample_then_polish_reaches_the_full_multistart_optimum(m
     same basin's minimum; the tolerances are the solver's, far below the statistics), and the
     same covariance. The threshold is
     lowered to 2 500 rows here (a 7 500-row table) so the test stays cheap; the logic is the
-    one that runs at 50 000 (docs/performance.md: its effect on a 10⁷-row fit)."""
+    one that runs at 10 000 (docs/performance.md: its effect on a 10⁷-row fit)."""
     import fitting.fit as fit_module
     import fitting.lsq as lsq_module
 
