@@ -34,7 +34,7 @@ from tests.support.aravis import FakeCamera, expected_mono, fake_serial, require
 from tests.support.pretend_lab import DEMO_SCENE, LAB_RIG, REPO, pretend_lab
 
 # heavy: scheduled first (tests/conftest.py: the longest files start first).
-pytestmark = [pytest.mark.timeout(900), pytest.mark.heavy(60)]
+pytestmark = [pytest.mark.timeout(900), pytest.mark.heavy(62)]
 
 
 @pytest.fixture(autouse=True)

@@ -38,7 +38,7 @@ from tests.support.faults import (
 )
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
-pytestmark = pytest.mark.heavy(38)
+pytestmark = pytest.mark.heavy(39)
 
 THETA_I = (10.0, 20.0, 30.0, 40.0, 50.0)
 THETA_O = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0)

@@ -24,7 +24,7 @@ from tests.support.effect_runs import effect_run, paired_rows
 from tests.support.paths import REPO
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
-pytestmark = pytest.mark.heavy(43)
+pytestmark = pytest.mark.heavy(67)
 
 #: The arm-offset fit's own precision on these 12 views is ~0.02° (test_calibrate_rig: σ <
 #: 0.05°), so each error is made large enough that 20 % of its predicted effect (≥ 0.05°) is

@@ -20,7 +20,7 @@ from fitting.mcmc import ChainFile, ConvergenceTarget, McmcOptions, run_mcmc
 from fitting.priors import ParameterSpace
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
-pytestmark = pytest.mark.heavy(26)
+pytestmark = pytest.mark.heavy(29)
 
 
 def ts_reference(kd, ks, m, wi, wo):

@@ -52,7 +52,7 @@ from fitting.mismatch import (
 from tests.support.repeats import repeat_map, repeat_pool
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
-pytestmark = pytest.mark.heavy(90)
+pytestmark = pytest.mark.heavy(123)
 
 REPEATS = 30
 N_MEASURED = 2500

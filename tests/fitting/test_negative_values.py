@@ -102,7 +102,7 @@ def _one(args):
     )
 
 
-@pytest.mark.heavy(65)
+@pytest.mark.heavy(25)
 def test_negative_values_fit_unbiased_and_dropping_them_is_not(tmp_path) -> None:
     truth = _truth_table()
     with repeat_pool() as pool:

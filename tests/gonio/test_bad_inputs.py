@@ -29,7 +29,7 @@ import pytest
 from tests.support.paths import REPO
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
-pytestmark = pytest.mark.heavy(56)
+pytestmark = pytest.mark.heavy(80)
 
 CORPUS = REPO / "tests" / "bad_inputs"
 CASES = tomllib.loads((CORPUS / "cases.toml").read_text())["case"]

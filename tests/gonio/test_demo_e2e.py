@@ -20,7 +20,7 @@ from simulator.truth import reference_parameters
 from tests.support.paths import REPO
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
-pytestmark = pytest.mark.heavy(105)
+pytestmark = pytest.mark.heavy(69)
 
 
 @pytest.fixture(scope="module")

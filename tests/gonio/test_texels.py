@@ -28,7 +28,7 @@ from simulator.texture import texel_truth
 from tests.support.texels import ProcessCluster, fit_options, texel_samples
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
-pytestmark = pytest.mark.heavy(77)
+pytestmark = pytest.mark.heavy(78)
 
 TEXELS = 5
 STEPS = 300

@@ -19,7 +19,7 @@ from fitting.models import microfacet as mf
 from fitting.models import properties
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
-pytestmark = pytest.mark.heavy(55)
+pytestmark = pytest.mark.heavy(17)
 
 TS_ANISO = "torrance-sparrow-anisotropic"
 OPTIONS = [

@@ -20,7 +20,7 @@ from fitting.models import kernel_math
 from fitting.priors import ParameterSpace
 
 # Scheduled first (tests/conftest.py: the longest files start first, so both workers end together).
-pytestmark = pytest.mark.heavy(27)
+pytestmark = pytest.mark.heavy(35)
 
 U32 = 2.0**-24  # float32's unit roundoff: a correctly rounded operation errs by ≤ U32 relative
 
