@@ -124,6 +124,15 @@ class LightConfig(Strict):
         "samples' uncertainty budget",
     )
     warmup_s: float = Field(0.0, ge=0, le=3600)
+    radius_m: float = Field(
+        0.0,
+        ge=0,
+        le=0.05,
+        description="radius of the lamp's exit aperture (a disk facing the sample), m; 0: a "
+        "point. A lamp of radius r at distance d lights each point from a cone of half-angle "
+        "r/d, which broadens a lobe; the fit averages its model over that disk (fitting."
+        "likelihood, the lamp's extent)",
+    )
 
     @field_validator("baudrate")
     @classmethod

@@ -307,6 +307,10 @@ def _reduce_open_run(
                 "gonio.arm_poses": json.dumps(_with_approach(arm_poses)),
             }
         )
+        if rig.light.radius_m > 0:  # the lamp's extent, for the fit (fitting.likelihood)
+            metadata["gonio.lamp"] = json.dumps(
+                {"radius_m": rig.light.radius_m, "distance_m": rig.geometry.light_distance_m}
+            )
         if options.texel_mm:
             check_replace(dest, metadata)  # before the file replaces anything
         return metadata
