@@ -353,9 +353,7 @@ def _arm_components(rig: RigConfig, arm_offsets: dict | None) -> list[dict]:
         # roll's is left out: a roll error δρ turns a pixel's ray about the optical axis, by
         # δρ times the pixel's angle off the axis (≤ 0.1 of δρ on a 12° field): not a term of
         # the arms' error model, and a few 0.01° after calibrate-rig.
-        sig = {
-            k: float(v) for k, v in arm_offsets["sigma_deg"].items() if k != "camera_roll"
-        }
+        sig = {k: float(v) for k, v in arm_offsets["sigma_deg"].items() if k != "camera_roll"}
         zero = {"component": "arm angles: encoder zeros (gonio calibrate-rig)", "type": "A"}
     elif rig.geometry.axis_zero_sigma_deg or rig.geometry.sample_tilt_sigma_deg:
         sig = {k: float(v) for k, v in (rig.geometry.axis_zero_sigma_deg or {}).items()}
