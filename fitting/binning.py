@@ -120,13 +120,6 @@ class BinReport:
         )
 
 
-def _row_kinds(t: SampleTable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(usable, saturated, dark) masks: the flags' roles (brdfdata.samples.FLAG_ROLES), read as
-    fitting.likelihood reads them, so a table binned or not gives one answer."""
-    kinds = row_kinds(t)
-    return kinds.usable, kinds.saturated, kinds.dark
-
-
 class _Accumulator:
     """Per-bin sums, merged batch by batch so memory stays a few times the number of bins."""
 
@@ -146,7 +139,8 @@ class _Accumulator:
         if self.metadata is None:
             self.metadata = dict(t.metadata)
         self.rows += len(t)
-        usable, sat, dark = _row_kinds(t)
+        kinds = row_kinds(t)  # brdfdata.samples.FLAG_ROLES, read as the likelihood reads it
+        usable, sat, dark = kinds.usable, kinds.saturated, kinds.dark
         self.left_out += int(np.sum(~usable))
         t = t.select(usable)
         sat, dark = sat[usable], dark[usable]
@@ -251,7 +245,8 @@ def bin_table(
     acc.add(table)
     out = acc.table()
     if members:
-        _, sat, dark = _row_kinds(table)
+        kinds = row_kinds(table)
+        sat, dark = kinds.saturated, kinds.dark
         index = _bin_of(acc.keys, acc.keys_of(table, sat, dark)[0])
     report = BinReport(acc.rows, len(out), acc.left_out, opt.width_deg, tuple(acc.channels))
     out.metadata["gonio.binned"] = json.dumps(report.__dict__)
@@ -329,7 +324,8 @@ def binning_bias(
     for batch in parquet.iter_batches(batch_size=opt.batch_rows):
         arrow = pa.Table.from_batches([batch]).replace_schema_metadata(schema.metadata)
         t = table_from_arrow(arrow, path, guards=False)
-        usable, sat, dark = _row_kinds(t)
+        kinds = row_kinds(t)  # brdfdata.samples.FLAG_ROLES, read as the likelihood reads it
+        usable, sat, dark = kinds.usable, kinds.saturated, kinds.dark
         exact = usable & ~sat & ~dark
         t = t.select(exact)
         f_model = np.asarray(predict(t), dtype=np.float64)

@@ -612,7 +612,6 @@ def _censored_laplace(lik, x0: np.ndarray, cov0) -> tuple[np.ndarray, np.ndarray
 
     space = lik.space
     lo, hi = space.bounds
-    free = np.ones(space.ndim, bool)
     disc = np.array([s.base == DISCREPANCY[0] for s in space.specs])
     if cov0 is not None and np.all(np.isfinite(np.diag(cov0))):
         scale = np.sqrt(np.clip(np.diag(cov0), 0, None))
@@ -623,17 +622,15 @@ def _censored_laplace(lik, x0: np.ndarray, cov0) -> tuple[np.ndarray, np.ndarray
     scale = np.where(disc, 0.5, np.where(scale > 0, scale, 1e-6))
 
     def x_of(u: np.ndarray) -> np.ndarray:
-        x = x0.copy()
-        x[free] = x0[free] + u * scale
-        return x
+        return x0 + u * scale
 
     def cost(u: np.ndarray) -> float:
         lp = float(lik.log_prob(x_of(u)))
         return -lp if np.isfinite(lp) else 1e300
 
     # in units of the least-squares sd, so one step size suits every parameter
-    bounds = list(zip((lo[free] - x0[free]) / scale, (hi[free] - x0[free]) / scale, strict=True))
-    res = minimize(cost, np.zeros(int(free.sum())), method="L-BFGS-B", bounds=bounds)
+    bounds = list(zip((lo - x0) / scale, (hi - x0) / scale, strict=True))
+    res = minimize(cost, np.zeros(space.ndim), method="L-BFGS-B", bounds=bounds)
     if not np.isfinite(res.fun) or res.fun >= 1e300:
         return None
     # central differences, steps of 0.05 least-squares sd: ln p's curvature over ±1 sd is

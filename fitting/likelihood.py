@@ -65,7 +65,7 @@ from functools import cached_property
 import numpy as np
 from scipy.special import gammaln, log_ndtr
 
-from brdfdata.directions import spherical_to_vector
+from brdfdata.directions import normalize, spherical_to_vector
 from brdfdata.samples import SampleTable, row_kinds
 from fitting.likelihood_kernels import gauss_discrepancy_sum
 from fitting.nuisance import ANGLE_NUISANCES, arm_deltas, arm_rows, measured_geometry, to_si
@@ -344,8 +344,7 @@ class Likelihood:
                 f0 = np.asarray(self.model.evaluate(p0, d.wi, d.wo), float).reshape(-1)
                 total = np.zeros(d.wi.shape[0])
                 for u, v, weight in _DISK_RULE:
-                    wk = d.wi + self._lamp_cone * (u * e1 + v * e2)
-                    wk = wk / np.linalg.norm(wk, axis=1, keepdims=True)
+                    wk = normalize(d.wi + self._lamp_cone * (u * e1 + v * e2))
                     fk = np.asarray(self.model.evaluate(p0, wk, d.wo), float).reshape(-1)
                     total += weight * fk * wk[:, 2]
                 c = total / (f0 * d.wi[:, 2])
@@ -730,6 +729,5 @@ def _lamp_cone(metadata: dict[str, str]) -> float | None:
 def _perpendicular_basis(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors perpendicular to each unit row of ``w`` (N, 3) and to each other."""
     helper = np.where(np.abs(w[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-    e1 = np.cross(w, helper)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e1 = normalize(np.cross(w, helper))
     return e1, np.cross(w, e1)
