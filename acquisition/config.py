@@ -269,6 +269,15 @@ class SampleConfig(Strict):
         "+x", description="how φ = 0 (+x) is marked on the sample, e.g. 'notch on the +x edge'"
     )
     holder: str = Field("", description="holder description, for the record")
+    bow_sigma_m: float | None = Field(
+        None,
+        ge=0,
+        le=0.005,
+        description="standard uncertainty (k = 1, metres) of the sample's bow: the sagitta of a "
+        "dome (or dish) over the sample's half side. A sheet (paper, foil, film) curls by "
+        "0.1–1 mm over 50 mm, a painted card ~0.1 mm, a lapped tile ~10 µm; the fit carries it "
+        "as a nuisance (fitting.nuisance: the local normal leans by the dome's slope)",
+    )
 
 
 class ReferenceConfig(Strict):
@@ -313,6 +322,15 @@ class RigCalibrationConfig(Strict):
     arm_offsets: str | None = Field(
         None, description="JSON written by `gonio calibrate-rig` (arm zero offsets, tilt)"
     )
+    flat_source_falloff_sigma: float | None = Field(
+        None,
+        ge=0,
+        le=0.15,
+        description="standard uncertainty (k = 1) of the flat-field source's radiance fall-off "
+        "from the optical axis to the frame's corner, from its uniformity spec (an "
+        "integrating sphere's port ≤ 1 %, LED panels 2–5 %): the flat carries the source's "
+        "profile into every frame, so the fit carries it as a nuisance",
+    )
 
 
 class GeometryConfig(Strict):
@@ -332,6 +350,14 @@ class GeometryConfig(Strict):
         "scale it is a shared scale error 2σ/r in the samples' budget",
     )
     camera_distance_m: float = Field(0.5, gt=0, le=10)
+    camera_distance_sigma_m: float | None = Field(
+        None,
+        ge=0,
+        lt=1,
+        description="standard uncertainty (k = 1) of camera_distance_m, to the lens' entrance "
+        "pupil (inside the lens: known to ~5–10 mm without a pupil measurement). Each pixel's "
+        "ray then meets the sample slightly elsewhere; the fit carries it as a nuisance",
+    )
     axis_zero_sigma_deg: (
         dict[
             Literal["light_theta", "light_phi", "camera_theta", "camera_phi"],

@@ -32,6 +32,7 @@ from calibration.geometry import (
 )
 from calibration.geometry import project_points as _project
 from calibration.hdr import RawBrackets, merge_frames_local
+from calibration.linearity import Linearity, linearise_dn
 from calibration.radiometry import CameraRadiometry
 from calibration.segmentation import segment_sample
 from plumbing.errors import UserError
@@ -44,6 +45,8 @@ __all__ = [
     "footprint_window",
     "Window",
     "block_all",
+    "bracket_noise_e",
+    "bracket_zero_dn",
 ]
 
 
@@ -64,14 +67,17 @@ class RunCalibration:
     darks: DarkLibrary | None
     flat: FlatField | None
     options: Any
+    #: The camera's response measured from the brackets (calibration.linearity), or None.
+    linearity: Linearity | None = None
 
 
 def _pointing_margin_m(cal: RunCalibration, cam_pos_m: np.ndarray) -> float:
     """How far inside the sample's edge a pixel must see to stay on the sample when the camera
-    arm points off by the angle errors the rig file states (its zero, play and sag: the fit
-    carries them, fitting.nuisance, but the footprint moves with them): 2σ of the footprint's
-    shift, r·σ/cos θ_o along the view (a pixel straddling the edge reads up to half of f —
-    25σ low on the realistic rig at θ_o = 60°). 0 when the rig states none."""
+    arm points off by the angle errors the rig file states (its zero, play and sag; the fit
+    carries them, fitting.nuisance, but the footprint moves with them) or sits further than
+    stated: 2σ of the footprint's shift, r·σ/cos θ_o along the view ⊕ the edge's R·σ_d/r (a
+    pixel straddling the edge reads up to half of f — 25σ low on the realistic rig at
+    θ_o = 60°). 0 when the rig states none."""
     geo = cal.geometry.kinematics.geometry
     parts = [
         (geo.axis_zero_sigma_deg or {}).get("camera_theta"),
@@ -82,7 +88,11 @@ def _pointing_margin_m(cal: RunCalibration, cam_pos_m: np.ndarray) -> float:
         p is not None for p in parts) else 0.0)  # fmt: skip
     r = float(np.linalg.norm(cam_pos_m))
     cos_o = max(abs(float(cam_pos_m[2])) / r, 0.2) if r > 0 else 1.0
-    return 2.0 * r * sigma / cos_o
+    # A pupil further than stated sees the sample smaller: its edge moves in by half the
+    # side times σ_d/r (the fit carries the distance, fitting.nuisance, not the footprint).
+    sigma_d = geo.camera_distance_sigma_m or 0.0
+    edge = 0.5 * cal.sample_size_m * sigma_d / r if r > 0 else 0.0
+    return 2.0 * math.hypot(r * sigma / cos_o, edge)
 
 
 @dataclass
@@ -227,7 +237,7 @@ def merge_pose(cal: RunCalibration, decoded, exposures, on_sample=None, window=N
     Returns flux (e/s per photosite or pixel, flat-corrected), its variance and the
     all-brackets-saturated mask, in the frames' own layout.
     """
-    radiometry, darks, flat = cal.radiometry, cal.darks, cal.flat
+    radiometry, flat = cal.radiometry, cal.flat
     k = radiometry.gain_e_per_dn
     shape = decoded[0].dn.shape
     cut = Window.whole(shape) if window is None else window
@@ -236,13 +246,7 @@ def merge_pose(cal: RunCalibration, decoded, exposures, on_sample=None, window=N
         if d.dn.shape != shape:
             raise PlaneError(f"{d.path}: frame shape {d.dn.shape} differs from {shape}")
         dn.append(cut.of(d.dn))
-        if darks is not None:
-            dark = darks.for_exposure(t)  # CalibrationFrameError names the missing exposure
-            # Signal-independent variance: the frame's own (measured) dark noise plus that of
-            # the master subtracted from it.
-            noise_sd.append(k * math.sqrt(dark.temporal_var_dn2 + dark.master_var_dn2))
-        else:
-            noise_sd.append(math.sqrt(radiometry.read_noise_e**2 + k**2 / 12.0))
+        noise_sd.append(bracket_noise_e(cal, t))
     # Electrons (DN − dark or black)·gain; a bracket is saturated at the camera's clip level
     # (full well, which can sit far below the ADC's white level) and clips at (white − dark)·gain.
     # Weights, variance and the choice of brackets come from the neighbours' flux, never the
@@ -250,9 +254,17 @@ def merge_pose(cal: RunCalibration, decoded, exposures, on_sample=None, window=N
     # merge_frames_local computes without whole-frame temporaries: own-value weights and
     # saturation tests bias the flux and any σ-weighted fit by O(1/N_electrons)).
     # Off-sample neighbours (holder, background) do not enter the local estimate.
+    offsets = _offsets(cal, exposures, cut, (len(dn), *dn[0].shape))
+    lin = cal.linearity
+    if lin is not None and lin.corrected:
+        # The bend comes out before the merge: each bracket's zero moves up by what the
+        # response added (y_m − y), so (DN − offset) is the linear signal; the saturation test
+        # still reads the raw DN.
+        y = np.stack(dn).astype(np.float64) - offsets
+        offsets = offsets + (y - linearise_dn(y, lin.beta, lin.clip_dn))
     brackets = RawBrackets(
         np.stack(dn),
-        _offsets(cal, exposures, cut, (len(dn), *dn[0].shape)),
+        offsets,
         list(exposures),
         np.asarray(noise_sd),
         k,
@@ -270,6 +282,24 @@ def merge_pose(cal: RunCalibration, decoded, exposures, on_sample=None, window=N
         flat=field,  # divided out in the merge's own pass
     )
     return flux, var, all_sat
+
+
+def bracket_noise_e(cal: RunCalibration, exposure_s: float) -> float:
+    """A bracket's signal-independent noise σ (e⁻): with darks, the frame's own (measured) dark
+    noise plus that of the master subtracted from it; else the read noise and the ADC's step."""
+    k = cal.radiometry.gain_e_per_dn
+    if cal.darks is not None:
+        dark = cal.darks.for_exposure(exposure_s)  # CalibrationFrameError names the exposure
+        return k * math.sqrt(dark.temporal_var_dn2 + dark.master_var_dn2)
+    return math.sqrt(cal.radiometry.read_noise_e**2 + k**2 / 12.0)
+
+
+def bracket_zero_dn(cal: RunCalibration, exposure_s: float):
+    """What a bracket reads at zero signal: its master dark (frame-shaped), else the black
+    level (a scalar)."""
+    if cal.darks is not None:
+        return cal.darks.for_exposure(exposure_s).dn
+    return float(cal.radiometry.black_level_dn)
 
 
 def _offsets(cal: RunCalibration, exposures, cut: Window, shape: tuple[int, ...]) -> np.ndarray:

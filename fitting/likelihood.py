@@ -210,7 +210,14 @@ class Likelihood:
         counts = table.extra.get("n_rows")
         # the arms' pose per row only for a fit that carries their angles (fitting.nuisance)
         shared = space.shared_errors
-        arm = arm_rows(table) if shared is not None and shared.angle_sigma_deg else None
+        arm = (
+            arm_rows(table, shared.bow_half_side_m, shared.flat_field)
+            if shared is not None and shared.angle_sigma_deg
+            # the lamp's extent needs each row's point on the sample (its emission angle)
+            else arm_rows(table)
+            if _lamp_cone(table.metadata) is not None
+            else None
+        )
         captures = table.extra.get("capture_id")
         for ch in channels:
             sel = usable & (table.channel == ch)
@@ -323,7 +330,11 @@ class Likelihood:
         a Lambertian disk facing the sample lights each point from a cone of half-angle
         a = r/d, and calibration divides by the irradiance of a point lamp at its centre, so the
         measured f is the disk average of f(ω', ω_o) cos θ' over f's centre value's
-        cos θ_c. Per row, c = Σ_k w_k f(ω_k, ω_o) cos θ_k / (f(ω_c, ω_o) cos θ_c) over Radon's
+        cos θ_c, times the disk's emission cos α toward the row's point p (the disk faces the
+        sample's centre: a point x off it sees the lamp at α ≈ x/d, 0.13 % dimmer at the edge of
+        a 50 mm sample at 0.5 m, which an isotropic point lamp's calibration does not know;
+        with the arms' positions, else α = 0). Per row,
+        c = cos α Σ_k w_k f(ω_k, ω_o) cos θ_k / (f(ω_c, ω_o) cos θ_c) over Radon's
         7-point disk rule (centre ¼, six points at radius √(2/3) a, ⅛ each: exact for degree
         5 over the disk), ω_k = ω_c + a (u_k e₁ + v_k e₂) normalised, e₁, e₂ ⊥ ω_c. Frozen at θ₀
         like the discrepancy's reference: c depends on θ only through the lobe's curvature,
@@ -347,7 +358,7 @@ class Likelihood:
                     wk = normalize(d.wi + self._lamp_cone * (u * e1 + v * e2))
                     fk = np.asarray(self.model.evaluate(p0, wk, d.wo), float).reshape(-1)
                     total += weight * fk * wk[:, 2]
-                c = total / (f0 * d.wi[:, 2])
+                c = total / (f0 * d.wi[:, 2]) * _emission_cos(d)
             factors.append(np.where(np.isfinite(c) & (c > 0), c, 1.0))
         self._lamp = factors
 
@@ -391,6 +402,10 @@ class Likelihood:
             lamp = d.lamp if data is not None else (self._lamp[i] if self._lamp else None)
             if lamp is not None:
                 fm = fm * lamp.astype(fm.dtype, copy=False)
+            falloff = natural.get("flat_falloff_pct")
+            if falloff is not None and d.arm is not None and "field_r2" in d.arm:
+                # the flat source's profile the master flat divided in (fitting.nuisance)
+                fm = fm / (1.0 - to_si("flat_falloff_pct", falloff)[:, None] * d.arm["field_r2"])
             scale = natural.get(f"scale_{d.channel}")
             out.append(fm if scale is None else fm * scale[:, None])
         return out
@@ -421,7 +436,8 @@ class Likelihood:
                 grads = {}
                 for arm in delta0:
                     fs = []
-                    step = 1e-5 if arm == "light_r" else h  # 10 µm for the lamp's distance
+                    # 10 µm for the lamp's and the camera's distance
+                    step = 1e-5 if arm in ("light_r", "camera_r") else h
                     for sign in (1.0, -1.0):
                         dd = dict(delta0, **{arm: delta0[arm] + sign * step})
                         wi, wo, ratio = measured_geometry(d.wi, d.wo, d.arm, dd, kin)
@@ -724,6 +740,18 @@ def _lamp_cone(metadata: dict[str, str]) -> float | None:
     except (ValueError, TypeError, KeyError, ZeroDivisionError):
         return None
     return cone if math.isfinite(cone) and cone > 0 else None
+
+
+def _emission_cos(d: ChannelData) -> np.ndarray | float:
+    """cos α per row: the angle at a lamp facing the sample's centre between its axis and the
+    row's point p on the sample (from the arms' positions, fitting.nuisance.arm_rows); 1
+    without them."""
+    if d.arm is None or "light_pos" not in d.arm:
+        return 1.0
+    light, cam = d.arm["light_pos"], d.arm["cam_pos"]
+    p = cam - (cam[:, 2] / d.wo[:, 2])[:, None] * d.wo
+    axis = normalize(-light)
+    return np.sum(axis * normalize(p - light), axis=1)
 
 
 def _perpendicular_basis(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

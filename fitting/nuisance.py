@@ -26,6 +26,19 @@ marginalises it:
 * ``sample_tilt_x``, ``sample_tilt_y`` (degrees): the sample's plane tilted on its holder by
   R_τ = R_y(τ_y) R_x(τ_x) (calibrate-rig's convention), every direction seen from the sample
   is R_τᵀ ω.
+* ``sample_bow_um`` (µm, with the arms' positions): the sample is a dome h = s (1 − (x² + y²)/R²)
+  of sagitta s over its half side R (the budget's "sample flatness (bow)"), so at the point
+  (x, y) where a pixel meets it the normal leans by the slope −2 s (x, y)/R²: a tilt
+  τ_y = 2 s x/R², τ_x = −2 s y/R² of that row alone (R_τ z ≈ (τ_y, −τ_x, 1)). Shared by every
+  sample at the same place, it biases a fit that ignores it far beyond its size: 0.1 mm over
+  25 mm (0.46° at the edge) moved the lamp-distance nuisance to −18 mm and m by 5.5 σ.
+* ``camera_distance_mm`` (with the arms' positions): the camera's entrance pupil sits further
+  along its line of sight than the rig file says, so each pixel's ray, traced from the true
+  point, meets the sample elsewhere, where the lamp's direction and distance differ.
+* ``flat_falloff_pct`` (%, with a flat field): the flat source's radiance falls as
+  1 − a ρ/ρ_corner over the frame (ρ the squared tangent of the field angle), which the master
+  flat divides into every frame: the measured f is the model's / (1 − a ρ/ρ_corner) at the
+  row's pixel. Not an angle: a factor per row (fitting.likelihood).
 * With the light's direction, the irradiance calibration divided by moves too: the measured f
   is the BRDF at the true directions times cos θ_i(true) / cos θ_i(recorded)
   (fitting.likelihood).
@@ -43,6 +56,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from brdfdata.directions import spherical_to_vector
 from fitting.budget import scale_sigma
 
 __all__ = [
@@ -64,6 +78,7 @@ __all__ = [
     "to_si",
     "arm_deltas",
     "ARMS",
+    "FACTOR_NUISANCES",
 ]
 
 #: Prior box of a nuisance parameter, in its prior σ: wide enough never to bind (P(|z| > 6) ≈
@@ -72,7 +87,7 @@ PRIOR_BOX_SIGMA = 6.0
 
 #: The arm angles a nuisance moves (radians, true − recorded): the two elevations, the camera's
 #: azimuth relative to the light's, and the sample's tilt about x and y.
-ARMS = ("light_theta", "camera_theta", "camera_phi", "tilt_x", "tilt_y", "light_r")
+ARMS = ("light_theta", "camera_theta", "camera_phi", "tilt_x", "tilt_y", "light_r", "camera_r")
 #: Angle nuisances: fitted name → (the arm angle it moves, how): "zero" by itself, "sag" times
 #: the sine of the arm's elevation, "play" by −½ the side of the axis' last move (the arm lags
 #: it), "play_light_phi" by +½ the side of the light's azimuth axis (its lag turns the light,
@@ -90,9 +105,17 @@ ANGLE_TERMS = {
     "light_phi_play": ("camera_phi", "play_light_phi"),
     "camera_phi_play": ("camera_phi", "play"),
     "light_distance_mm": ("light_r", "zero"),
+    "sample_bow_um": ("tilt", "bow"),
+    "camera_distance_mm": ("camera_r", "zero"),
 }
-#: Units of a nuisance other than degrees, as their SI factor (the arm "light_r" is metres).
-_SI = {"light_distance_mm": 1e-3}
+#: Units of a nuisance other than degrees, as their SI factor (the arm "light_r" is metres; the
+#: bow's sagitta is metres, its tilt per row radians), and the word for the unit.
+_SI = {"light_distance_mm": 1e-3, "sample_bow_um": 1e-6, "camera_distance_mm": 1e-3,
+       "flat_falloff_pct": 1e-2}  # fmt: skip
+_UNIT = {"light_distance_mm": "mm", "sample_bow_um": "µm", "camera_distance_mm": "mm",
+         "flat_falloff_pct": "%"}  # fmt: skip
+#: Nuisances that multiply each row's f instead of moving its directions (fitting.likelihood).
+FACTOR_NUISANCES = ("flat_falloff_pct",)
 
 
 def to_si(name: str, value):
@@ -123,6 +146,10 @@ class SharedErrors:
     angle_center_deg: dict[str, float] = field(default_factory=dict)
     #: Budget components the fit carries (by name), for the words.
     carried: tuple[str, ...] = ()
+    #: The sample's half side R (metres) when its bow is carried (``sample_bow_um``).
+    bow_half_side_m: float | None = None
+    #: The frame's intrinsics and corner ρ when the flat source's fall-off is carried.
+    flat_field: dict | None = None
 
     def __bool__(self) -> bool:
         return bool(self.scale_sigma or self.angle_sigma_deg)
@@ -160,7 +187,20 @@ def shared_errors(
         ]
     centers: dict[str, float] = {}
     kinematics = "two-arm"
+    bow_half_side = flat_field = None
     for comp in budget or []:
+        if positions and comp.get("bow_sigma_m") and comp.get("half_side_m"):
+            # the bow needs each row's place on the sample: the arms' positions give it
+            angles["sample_bow_um"] = 1e6 * float(comp["bow_sigma_m"])
+            bow_half_side = float(comp["half_side_m"])
+            carried.append(str(comp.get("component")))
+        if positions and comp.get("camera_distance_sigma_m"):
+            angles["camera_distance_mm"] = 1e3 * float(comp["camera_distance_sigma_m"])
+            carried.append(str(comp.get("component")))
+        if positions and comp.get("falloff_sigma") and isinstance(comp.get("field"), dict):
+            angles["flat_falloff_pct"] = 100.0 * float(comp["falloff_sigma"])
+            flat_field = dict(comp["field"])
+            carried.append(str(comp.get("component")))
         name = str(comp.get("component", ""))
         sig = comp.get("sigma_deg")
         if name.startswith("arm angles: encoder zeros") and isinstance(sig, dict) and sig:
@@ -189,7 +229,9 @@ def shared_errors(
                 angles["light_theta_sag"] = angles["camera_theta_sag"] = float(sag)
             if play or sag:
                 carried.append(name)
-    out = SharedErrors(scales, angles, kinematics, centers, tuple(carried))
+    out = SharedErrors(
+        scales, angles, kinematics, centers, tuple(carried), bow_half_side, flat_field
+    )
     return out if out else None
 
 
@@ -292,13 +334,19 @@ def measured_geometry(
         return wi2, wo2, wi2[..., 2] / wi[:, 2]
     light, cam = rows["light_pos"], rows["cam_pos"]
     p = cam - (cam[:, 2] / wo[:, 2])[:, None] * wo  # the pixel's point on z = 0
+    d_c = delta.get("camera_r")
+    cam_true = cam
+    if d_c is not None:  # the pupil further along the line of sight: the same rays from there
+        cam_true = (
+            cam * (1.0 + np.asarray(d_c, dtype=np.float64) / np.linalg.norm(cam, axis=1))[..., None]
+        )
     light_new = light
     d_r = delta.get("light_r")
     if d_r is not None:
         r = np.linalg.norm(light, axis=1)
         light_new = light * (1.0 + np.asarray(d_r, dtype=np.float64) / r)[..., None]
     light_new = _rotate_elevation(light_new, rows["phi_i"], delta.get("light_theta", 0.0))
-    cam_new = _turn_camera(cam, rows["phi_i"], rows["phi_o"], delta, kinematics)
+    cam_new = _turn_camera(cam_true, rows["phi_i"], rows["phi_o"], delta, kinematics)
     # The camera sits on its arm (acquisition.kinematics: its orientation is the arm's forward
     # kinematics), so an arm error turns its rays by the rotation that moved it: the same pixel
     # looks along the turned ray, at the normal as anywhere else.
@@ -323,6 +371,11 @@ def arm_deltas(rows: dict[str, np.ndarray], natural_rad: dict[str, np.ndarray]) 
             coef = rows["sin_" + arm]
         elif how == "play":
             coef = -0.5 * rows["side_" + arm]
+        elif how == "bow":  # the dome's slope at each row's point (module docstring)
+            v = np.asarray(value, dtype=np.float64)[:, None]
+            for tilt, term in (("tilt_y", v * rows["bow_x"]), ("tilt_x", -v * rows["bow_y"])):
+                out[tilt] = out[tilt] + term if tilt in out else term
+            continue
         else:  # play_light_phi: the light lags its move, φ_o − φ_i the other way
             coef = 0.5 * rows["side_light_phi"]
         term = np.asarray(value, dtype=np.float64)[:, None] * coef
@@ -370,7 +423,7 @@ def split_uncertainty(
 
 
 def is_nuisance_name(name: str) -> bool:
-    return name.startswith("scale_") or name in ANGLE_NUISANCES
+    return name.startswith("scale_") or name in ANGLE_NUISANCES or name in FACTOR_NUISANCES
 
 
 def carried_words(shared: SharedErrors, names: list[str], natural_draws: np.ndarray) -> str:
@@ -390,7 +443,7 @@ def carried_words(shared: SharedErrors, names: list[str], natural_draws: np.ndar
         else:
             prior = shared.angle_sigma_deg[name]
             centre = shared.angle_center_deg.get(name, 0.0)
-            unit = " mm" if name in _SI else "°"
+            unit = " " + _UNIT[name] if name in _UNIT else "°"
             parts.append(
                 f"{name} {np.median(col):+.3f} ± {np.std(col):.3f}{unit} "
                 f"(prior {centre:+.3g} ± {prior:.3g}{unit})"
@@ -423,7 +476,7 @@ def with_nuisances(space, shared: SharedErrors):  # ParameterSpace
     ]
     for name, sig in shared.angle_sigma_deg.items():
         c = shared.angle_center_deg.get(name, 0.0)
-        unit = "mm" if name in _SI else "deg"
+        unit = _UNIT.get(name, "deg")
         extra.append(ParameterSpec(name, name, None, unit, c - k * sig, c + k * sig, False,
                                    prior_sigma=sig, prior_center=c))  # fmt: skip
     return dataclasses.replace(space, specs=space.specs + tuple(extra), shared_errors=shared)
@@ -535,12 +588,17 @@ def arm_positions_known(metadata: dict) -> bool:
     )
 
 
-def arm_rows(table) -> dict[str, np.ndarray]:  # SampleTable
+def arm_rows(  # table: SampleTable
+    table, bow_half_side_m: float | None = None, flat_field: dict | None = None
+) -> dict[str, np.ndarray]:
     """Per row: the arms' azimuths (``phi_i``, ``phi_o``), the sines of the elevation axes
     (``sin_light_theta``, ``sin_camera_theta``) and the side of each axis' last move
     (``side_<axis>``: ±1, 0 unknown), from the metadata ``gonio.arm_poses`` (calibration, per
     capture) where the table has it and lists the row's capture; else the row's own φ and sin θ
-    and no side (a table from elsewhere: near the normal the row's φ is a poor stand-in)."""
+    and no side (a table from elsewhere: near the normal the row's φ is a poor stand-in).
+    With the arms' positions and a carried bow (`bow_half_side_m`, R), also ``bow_x``, ``bow_y``:
+    2 (x, y)/R² at the row's point on the sample (the dome's tilt per metre of sagitta). With
+    `flat_field` (the budget's intrinsics) and the rows' pixels, ``field_r2``: ρ/ρ_corner."""
     import json
 
     n = len(table.f)
@@ -552,6 +610,11 @@ def arm_rows(table) -> dict[str, np.ndarray]:  # SampleTable
     }
     for axis in ("light_theta", "camera_theta", "light_phi", "camera_phi"):
         out["side_" + axis] = np.zeros(n)
+    px, py = table.extra.get("pixel_x"), table.extra.get("pixel_y")
+    if flat_field and px is not None and py is not None:
+        u = (np.asarray(px, np.float64) - flat_field["cx"]) / flat_field["fx"]
+        v = (np.asarray(py, np.float64) - flat_field["cy"]) / flat_field["fy"]
+        out["field_r2"] = (u * u + v * v) / flat_field["r2_corner"]
     text = table.metadata.get("gonio.arm_poses")
     ids = table.extra.get("capture_id")
     if not text or ids is None:
@@ -584,4 +647,9 @@ def arm_rows(table) -> dict[str, np.ndarray]:  # SampleTable
     light_pos, cam_pos = per_light[inverse], per_cam[inverse]
     if np.all(np.isfinite(light_pos)) and np.all(np.isfinite(cam_pos)):
         out["light_pos"], out["cam_pos"] = light_pos, cam_pos
+        if bow_half_side_m:
+            wo = spherical_to_vector(table.theta_o, table.phi_o)
+            point = cam_pos - (cam_pos[:, 2] / wo[:, 2])[:, None] * wo  # the row's point, z = 0
+            k = 2.0 / bow_half_side_m**2
+            out["bow_x"], out["bow_y"] = k * point[:, 0], k * point[:, 1]
     return out

@@ -440,7 +440,7 @@ class Scene(Strict):
     # pixel's off-axis ρ = r²/f² (L = L₀(1 − a ρ/ρ_corner)). Integrating spheres: ≤ 1 % over
     # a port; LED flat panels: 2–5 % (vendors' uniformity specs). The flat then carries it
     # into every frame: calibrated f × 1/(1 − a ρ/ρ_corner) ≈ 1 + a ρ/ρ_corner.
-    flat_source_falloff: float = Field(0.0, ge=0, lt=1)
+    flat_source_falloff: float = Field(0.0, gt=-0.5, lt=1)  # < 0: brighter at the corners
     seed: int = 0
 
     @model_validator(mode="after")

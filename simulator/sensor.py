@@ -8,8 +8,13 @@ colour channel:
    the exact on-axis value is π L / (1 + 4N²); we use the paraxial form the calibration inverts)
    × cos⁴α off axis only if ``spec.vignetting`` (α = angle of the pixel's chief ray)
 2. photons                      Φ = E · pitch² · t / (h c / λ)
-3. mean electrons               μ_e = QE · Φ · (1 + PRNU_map) + dark · t + DSNU_map
+3. mean electrons               μ_e = QE · Φ · (1 + PRNU_map) + dark · t
 4. shot noise                   e ~ Poisson(μ_e)              (only if ``spec.noise``)
+   dark offset                  e + DSNU_map                  (EMVA 1288's dark signal
+   non-uniformity: an offset, either sign, the same in a dark frame as in a lit one. As a
+   Poisson mean it had to be clipped at 0, so a dark frame read ~0.4 DN high of a lit frame's
+   dark part on a 2 e⁻ DSNU, a bias only the simulator had, which the linearity measurement
+   from the brackets read as a bend of −0.3 %.)
 5. full well                    e = min(e, full_well)
    non-linearity                e · (1 + β e/full_well)      (only if ``spec.nonlinearity``)
 6. read noise                   e + N(0, σ_read²)             (only if ``spec.noise``)
@@ -54,8 +59,8 @@ STAGES = (
     "bayer",
     "prnu",
     "dark_current",
-    "dsnu",
     "shot_noise",
+    "dsnu",
     "full_well",
     "nonlinearity",
     "read_noise",
@@ -220,9 +225,6 @@ class Sensor:
         if s.dark_current_e_s > 0:
             self._ran("dark_current")
             mu = mu + s.dark_current_e_s * exposure_s
-        if dsnu is not None:
-            self._ran("dsnu")
-            mu = mu + dsnu
         mu = np.maximum(mu, 0.0)
 
         if s.noise:
@@ -230,6 +232,9 @@ class Sensor:
             e = self.rng.poisson(mu).astype(np.float64)
         else:
             e = mu
+        if dsnu is not None:
+            self._ran("dsnu")
+            e = e + dsnu
         self._ran("full_well")
         e = np.minimum(e, s.full_well_e)
         if s.nonlinearity > 0:

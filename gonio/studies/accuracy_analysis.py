@@ -300,7 +300,7 @@ def stated_budget(rig) -> dict[str, float]:  # RigConfig
     """The shared-error sizes (k = 1) a rig file states, under the names of the study's
     instrument budget (simulator.instrument_draws.InstrumentBudget): the lamp's or the reference
     target's certificate, the lamp distance, the largest encoder-zero σ, the sample tilt, the
-    gears' play and the arms' sag. What it leaves unstated is absent."""
+    gears' play, the arms' sag and the sample's bow. What it leaves unstated is absent."""
     g = rig.geometry
     out: dict[str, float] = {}
     cert = rig.reference.rel_sigma if rig.reference is not None else rig.light.intensity_rel_sigma
@@ -315,6 +315,7 @@ def stated_budget(rig) -> dict[str, float]:  # RigConfig
         ("tilt_sigma_deg", g.sample_tilt_sigma_deg),
         ("play_deg", g.backlash_deg),
         ("sag_sigma_deg", g.arm_sag_deg),
+        ("bow_sigma_m", rig.sample.bow_sigma_m),
     ):
         if value:
             out[key] = float(value)

@@ -395,7 +395,7 @@ def _realistic(spec: RunSpec, seed: int, cfg: StudyConfig, rig, plan: PlanConfig
     phases = CalibrationPhasesConfig(dark=DarkPhaseConfig(count=8), flat=FlatPhaseConfig(count=16))
     return (
         budget.world(world, z, seed=4000 + seed),
-        budget.rig(rig),
+        budget.rig(rig, lamp_radius_m=world.light.radius_m if world.light.type == "area" else 0.0),
         plan.model_copy(update={"calibration": phases}),
         AutoOperator(),
     )

@@ -108,6 +108,7 @@ _BUDGET_WORDS = {
     "tilt_sigma_deg": ("sample tilt", lambda v: f"{v:.3g}°"),
     "play_deg": ("gears' play", lambda v: f"{v:.3g}°"),
     "sag_sigma_deg": ("arm sag", lambda v: f"{v:.3g}°"),
+    "bow_sigma_m": ("sample bow", lambda v: f"{1e3 * v:.3g} mm"),
 }
 
 

@@ -177,7 +177,9 @@ def test_lamp_distance_is_a_shared_scale_error_in_quadrature() -> None:
     dist = next(c for c in budget if c["component"].startswith("scale (lamp distance"))
     assert dist["relative_sigma"] == dict.fromkeys("RGB", pytest.approx(0.01))
     reference = dataclasses.replace(certified, method="reference", absolute=False)
-    assert not any("distance" in c["component"] for c in _budget_components(rig, reference, None))
+    assert not any(
+        "lamp distance" in c["component"] for c in _budget_components(rig, reference, None)
+    )
     model = models.get("torrance-sparrow", **OPTIONS)
     params = {
         "kd_G": {"median": 0.3, "p16": 0.299, "p84": 0.301},

@@ -194,6 +194,11 @@ _WORLD_ERRORS = {
     "camera_theta_sag": ({"compliance_deg": {"camera_theta": 0.4}}, 0.4),
     "camera_theta_play": ({"backlash_deg": {"camera_theta": 0.6}}, 0.6),
     "light_distance_mm": ({"light_distance_error_m": 0.006}, 6.0),
+    # the world's dome is its own normal map (simulator.render.normal_texture), the fit's a tilt
+    # per row at the pixel's point, R = the rig file's half side (25 mm)
+    "sample_bow_um": ({"sample_bow_m": 0.0002}, 200.0),
+    # 50 mm: ten times a lens' unknown pupil, so the effect (~1 %) stands above DN rounding
+    "camera_distance_mm": ({"camera_distance_error_m": 0.05}, 50.0),
 }
 
 
@@ -215,11 +220,16 @@ def test_the_nuisance_model_moves_f_as_the_simulated_world_does(tmp_path) -> Non
     truth = reference_parameters(load_scene(REPO / "configs" / "scenes" / "demo.toml"))
     model = models.get("torrance-sparrow", **OPTIONS)
     base = effect_run(tmp_path / "base", 0.0)
-    rows = arm_rows(base)
+    rows = arm_rows(base, bow_half_side_m=0.025)
     for name, (world, value) in _WORLD_ERRORS.items():
         other = effect_run(tmp_path / name, 0.0, GeometryTruth(**world))
         a, b, good = paired_rows(base, other)
         good &= (base.f[a] > 0) & (base.channel[a].astype(str) == "G")
+        # Away from the sample's edge (20 of its 25 mm half side): a camera further away sees
+        # a smaller sample, so a pixel the lab puts just inside the edge sees the holder.
+        cam, wo = rows["cam_pos"][a], base.wo[a]
+        point = cam - (cam[:, 2] / wo[:, 2])[:, None] * wo
+        good &= np.max(np.abs(point[:, :2]), axis=1) < 0.020
         idx = a[good]
         sub = {k: v[idx] for k, v in rows.items()}
         delta = {k: v[0] for k, v in arm_deltas(sub, {name: to_si(name, [value])}).items()}
@@ -240,3 +250,61 @@ def test_the_nuisance_model_moves_f_as_the_simulated_world_does(tmp_path) -> Non
               f"residual {100 * resid:.3f} %")  # fmt: skip
         assert abs(slope - 1.0) < 0.03, (name, slope)
         assert resid < 0.1 * size, (name, resid, size)
+
+
+def test_a_stated_bow_is_carried_with_positions_and_named_without() -> None:
+    """The budget's "sample flatness (bow)" becomes the nuisance sample_bow_um (µm, prior σ
+    from the rig file) only where the rows' places on the sample are known (the arms'
+    positions); a rig that states no bow gets the component named as left out."""
+    from acquisition.config import load_rig
+    from calibration.reduce import _bow_component
+    from fitting.budget import left_out_words
+
+    rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
+    stated = rig.model_copy(update={"sample": rig.sample.model_copy(update={"bow_sigma_m": 1e-4})})
+    comp = _bow_component(stated)
+    assert comp["bow_sigma_m"] == 1e-4 and comp["half_side_m"] == pytest.approx(0.025)
+    shared = shared_errors([comp], ["G"], positions=True)
+    assert shared.angle_sigma_deg == {"sample_bow_um": pytest.approx(100.0)}
+    assert shared.bow_half_side_m == pytest.approx(0.025)
+    assert shared.carried == ("sample flatness (bow)",)
+    assert shared_errors([comp], ["G"], positions=False) is None
+    unstated = _bow_component(rig)
+    assert unstated["propagated"] is False
+    assert "sample flatness (bow)" in left_out_words([unstated])[0]
+    assert left_out_words([comp], shared.carried) == []
+
+
+def test_the_flat_falloff_nuisance_divides_f_as_the_worlds_flat_does(tmp_path) -> None:
+    """The fit's flat-source factor 1/(1 − a ρ/ρ_corner) (fitting.likelihood, ρ per row from its
+    pixel and the intrinsics calibration writes into the budget) against the world's flat
+    source of fall-off a = 5 % (simulator.camera.flat_source_profile, its own pixel grid and
+    intrinsics): noise-free runs with and without it, paired sample by sample; the regression
+    slope of the world's Δ ln f on the model's must be 1 within 3 % (what is left: the block's
+    mean profile against its centre's, < 1e-4 of a, and DN rounding, ~0.05 % of f)."""
+    from acquisition.config import load_rig
+    from fitting.budget import read_budget
+    from fitting.nuisance import arm_rows
+    from tests.support.effect_runs import effect_run, paired_rows
+
+    rig = load_rig(REPO / "configs" / "rigs" / "sim.toml")
+    rig = rig.model_copy(
+        update={"calibration": rig.calibration.model_copy(
+            update={"flat_source_falloff_sigma": 0.02})}
+    )  # fmt: skip
+    falloff = 0.05
+    base = effect_run(tmp_path / "base", 0.0, flat_falloff=0.0, rig=rig)
+    bent = effect_run(tmp_path / "bent", 0.0, flat_falloff=falloff, rig=rig)
+    shared = shared_errors(read_budget(base.metadata), ["G"], positions=True)
+    assert "flat field source (fall-off)" in shared.carried
+    assert shared.angle_sigma_deg["flat_falloff_pct"] == pytest.approx(2.0)
+    rows = arm_rows(base, flat_field=shared.flat_field)
+    a, b, good = paired_rows(base, bent)
+    good &= base.f[a] > 0
+    d_model = -np.log(1.0 - falloff * rows["field_r2"][a][good])
+    d_world = np.log(bent.f[b][good] / base.f[a][good])
+    slope = float(np.sum(d_model * d_world) / np.sum(d_model**2))
+    print(f"flat falloff: world/model slope {slope:.3f}, effect up to "
+          f"{100 * d_model.max():.2f} %")  # fmt: skip
+    assert d_model.max() > 0.01
+    assert abs(slope - 1.0) < 0.03, slope

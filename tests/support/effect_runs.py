@@ -18,16 +18,18 @@ def effect_run(
     geometry: GeometryTruth | None = None,
     flat_falloff: float | None = None,
     exposures_s: tuple[float, ...] = (0.016,),
+    noise: bool = False,
+    rig=None,
     **scene_update,
 ):
-    """A small run of the demo material, noise off (so the two runs differ only by β, the
+    """A small run of the demo material, noise off unless `noise` (so two runs differ only by β, the
     stated geometry error or the flat source's falloff). With ``flat_falloff`` the run records
     a flat field (8 frames) from a source of that falloff, and calibration uses it."""
     from acquisition.config import CalibrationPhasesConfig, FlatPhaseConfig, PlanConfig
     from gonio.pipeline import AcquireSpec, acquire
 
     scene = load_scene(REPO / "configs" / "scenes" / "demo.toml")
-    sensor = scene.sensor.model_copy(update={"noise": False, "nonlinearity": beta})
+    sensor = scene.sensor.model_copy(update={"noise": noise, "nonlinearity": beta})
     plan = PlanConfig(
         name="linearity",
         type="isotropic",
@@ -40,7 +42,7 @@ def effect_run(
         ),
     )
     spec = AcquireSpec(
-        rig=REPO / "configs" / "rigs" / "sim.toml",
+        rig=REPO / "configs" / "rigs" / "sim.toml" if rig is None else rig,
         plan=plan,
         scene=scene.model_copy(
             update={
