@@ -124,6 +124,16 @@ class LightConfig(Strict):
         "samples' uncertainty budget",
     )
     warmup_s: float = Field(0.0, ge=0, le=3600)
+    ambient_sigma_W_m2_sr: float | None = Field(
+        None,
+        ge=0,
+        lt=10,
+        description="standard uncertainty (k = 1) of light the lamp does not cause reaching the "
+        "sample (room lights, a monitor, daylight past the curtains), as a radiance: a dark lab "
+        "with black curtains ~5e-4 W m⁻² sr⁻¹; measure it with the lamp off. Calibration divides "
+        "it by the lamp's irradiance like the lamp's own light, so the fit carries it as an "
+        "additive nuisance",
+    )
     radius_m: float = Field(
         0.0,
         ge=0,

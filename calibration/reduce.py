@@ -515,9 +515,39 @@ def _budget_components(
         }
     )
     budget += _arm_components(rig, arm_offsets) + [_bow_component(rig), _camera_distance(rig)]
+    budget.append(_ambient_component(rig, scale))
     if cal is not None and cal.flat is not None:
         budget.append(_flat_source_component(rig, cal))
     return budget
+
+
+def _ambient_component(rig: RigConfig, scale: _Scale) -> dict:
+    """Light the lamp does not cause: radiance L_a A(ω_o) from the sample (A its directional
+    albedo, ≤ 1), which calibration divides by the lamp's irradiance I cos θ_i / r² like the
+    lamp's own, so every f carries an additive L_a A r² / (I cos θ_i). With the rig's
+    ``light.ambient_sigma_W_m2_sr`` the fit carries L_a A as a nuisance; the per-channel I
+    (W/sr, or the reference target's k) it needs is written here."""
+    comp: dict = {
+        "component": "ambient light (not from the lamp)",
+        "type": "B",
+        "relative_sigma": None,
+        "sigma_deg": None,
+        "shared_by": "every sample (an offset, largest relative to f where f is small)",
+    }
+    sigma = rig.light.ambient_sigma_W_m2_sr
+    if sigma is None:
+        comp.update(
+            size="not stated in the rig file (light.ambient_sigma_W_m2_sr): a dark lab with "
+            "black curtains ~5e-4 W m⁻² sr⁻¹, ~0.1 % of a diffuse f",
+            propagated=False,
+        )
+        return comp
+    comp.update(
+        ambient_sigma_W_m2_sr=sigma,
+        intensity_W_sr=dict(zip("RGB", (float(v) for v in scale.intensity), strict=False)),
+        size=f"σ {sigma:.3g} W m⁻² sr⁻¹ (times the sample's albedo ≤ 1)",
+    )
+    return comp
 
 
 def _camera_distance(rig: RigConfig) -> dict:

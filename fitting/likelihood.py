@@ -245,6 +245,9 @@ class Likelihood:
                     None if captures is None else np.asarray(captures[sel], dtype=np.int64),
                 )
             )
+        if shared is not None and shared.ambient_intensity:
+            for d in self.data:
+                _ambient_rows(d, shared.ambient_intensity)
         self.n = int(sum(d.f.size for d in self.data))
         if self.n == 0:
             raise ValueError(
@@ -407,7 +410,12 @@ class Likelihood:
                 # the flat source's profile the master flat divided in (fitting.nuisance)
                 fm = fm / (1.0 - to_si("flat_falloff_pct", falloff)[:, None] * d.arm["field_r2"])
             scale = natural.get(f"scale_{d.channel}")
-            out.append(fm if scale is None else fm * scale[:, None])
+            fm = fm if scale is None else fm * scale[:, None]
+            ambient = natural.get("ambient_mW")
+            if ambient is not None and d.arm is not None and "ambient_per_W" in d.arm:
+                # light the lamp does not cause, divided by the lamp's irradiance (nuisance)
+                fm = fm + to_si("ambient_mW", ambient)[:, None] * d.arm["ambient_per_W"]
+            out.append(fm)
         return out
 
     def _freeze_angles(self, theta: np.ndarray) -> None:
@@ -740,6 +748,19 @@ def _lamp_cone(metadata: dict[str, str]) -> float | None:
     except (ValueError, TypeError, KeyError, ZeroDivisionError):
         return None
     return cone if math.isfinite(cone) and cone > 0 else None
+
+
+def _ambient_rows(d: ChannelData, intensity_w_sr: dict[str, float]) -> None:
+    """Per row of `d`, what 1 W m⁻² sr⁻¹ of light leaving the sample that the lamp did not cause
+    adds to its calibrated f: r² / (I_c cos θ_i), r the lamp's distance to the row's point
+    (fitting.nuisance, ``ambient_mW``), into ``d.arm["ambient_per_W"]``."""
+    i_c = intensity_w_sr.get(d.channel)
+    if d.arm is None or "light_pos" not in d.arm or not i_c:
+        return
+    light, cam = d.arm["light_pos"], d.arm["cam_pos"]
+    p = cam - (cam[:, 2] / d.wo[:, 2])[:, None] * d.wo
+    r2 = np.sum((light - p) ** 2, axis=1)
+    d.arm["ambient_per_W"] = r2 / (i_c * d.wi[:, 2])
 
 
 def _emission_cos(d: ChannelData) -> np.ndarray | float:

@@ -39,6 +39,10 @@ marginalises it:
   1 − a ρ/ρ_corner over the frame (ρ the squared tangent of the field angle), which the master
   flat divides into every frame: the measured f is the model's / (1 − a ρ/ρ_corner) at the
   row's pixel. Not an angle: a factor per row (fitting.likelihood).
+* ``ambient_mW`` (mW m⁻² sr⁻¹, with the arms' positions): light the lamp does not cause leaves
+  the sample as radiance L_a A (A its directional albedo, slowly varying), which calibration
+  divides by the lamp's irradiance: the measured f gains L_a A r² / (I_c cos θ_i) per row (r
+  the lamp's distance to the row's point, I_c the channel's intensity). Added, not a factor.
 * With the light's direction, the irradiance calibration divided by moves too: the measured f
   is the BRDF at the true directions times cos θ_i(true) / cos θ_i(recorded)
   (fitting.likelihood).
@@ -111,11 +115,12 @@ ANGLE_TERMS = {
 #: Units of a nuisance other than degrees, as their SI factor (the arm "light_r" is metres; the
 #: bow's sagitta is metres, its tilt per row radians), and the word for the unit.
 _SI = {"light_distance_mm": 1e-3, "sample_bow_um": 1e-6, "camera_distance_mm": 1e-3,
-       "flat_falloff_pct": 1e-2}  # fmt: skip
+       "flat_falloff_pct": 1e-2, "ambient_mW": 1e-3}  # fmt: skip
 _UNIT = {"light_distance_mm": "mm", "sample_bow_um": "µm", "camera_distance_mm": "mm",
-         "flat_falloff_pct": "%"}  # fmt: skip
-#: Nuisances that multiply each row's f instead of moving its directions (fitting.likelihood).
-FACTOR_NUISANCES = ("flat_falloff_pct",)
+         "flat_falloff_pct": "%", "ambient_mW": "mW/m²/sr"}  # fmt: skip
+#: Nuisances that multiply each row's f, or add to it, instead of moving its directions
+#: (fitting.likelihood).
+FACTOR_NUISANCES = ("flat_falloff_pct", "ambient_mW")
 
 
 def to_si(name: str, value):
@@ -150,6 +155,8 @@ class SharedErrors:
     bow_half_side_m: float | None = None
     #: The frame's intrinsics and corner ρ when the flat source's fall-off is carried.
     flat_field: dict | None = None
+    #: Per channel, the lamp's intensity calibration divided by (W/sr) when ambient light is.
+    ambient_intensity: dict | None = None
 
     def __bool__(self) -> bool:
         return bool(self.scale_sigma or self.angle_sigma_deg)
@@ -187,8 +194,12 @@ def shared_errors(
         ]
     centers: dict[str, float] = {}
     kinematics = "two-arm"
-    bow_half_side = flat_field = None
+    bow_half_side = flat_field = ambient = None
     for comp in budget or []:
+        if positions and comp.get("ambient_sigma_W_m2_sr") and comp.get("intensity_W_sr"):
+            angles["ambient_mW"] = 1e3 * float(comp["ambient_sigma_W_m2_sr"])
+            ambient = {str(k): float(v) for k, v in comp["intensity_W_sr"].items()}
+            carried.append(str(comp.get("component")))
         if positions and comp.get("bow_sigma_m") and comp.get("half_side_m"):
             # the bow needs each row's place on the sample: the arms' positions give it
             angles["sample_bow_um"] = 1e6 * float(comp["bow_sigma_m"])
@@ -230,7 +241,7 @@ def shared_errors(
             if play or sag:
                 carried.append(name)
     out = SharedErrors(
-        scales, angles, kinematics, centers, tuple(carried), bow_half_side, flat_field
+        scales, angles, kinematics, centers, tuple(carried), bow_half_side, flat_field, ambient
     )
     return out if out else None
 

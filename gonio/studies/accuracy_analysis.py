@@ -300,7 +300,8 @@ def stated_budget(rig) -> dict[str, float]:  # RigConfig
     """The shared-error sizes (k = 1) a rig file states, under the names of the study's
     instrument budget (simulator.instrument_draws.InstrumentBudget): the lamp's or the reference
     target's certificate, the lamp distance, the largest encoder-zero σ, the sample tilt, the
-    gears' play, the arms' sag and the sample's bow. What it leaves unstated is absent."""
+    gears' play, the arms' sag, the sample's bow, the camera's distance, the flat source's
+    fall-off and ambient light. What it leaves unstated is absent."""
     g = rig.geometry
     out: dict[str, float] = {}
     cert = rig.reference.rel_sigma if rig.reference is not None else rig.light.intensity_rel_sigma
@@ -316,6 +317,9 @@ def stated_budget(rig) -> dict[str, float]:  # RigConfig
         ("play_deg", g.backlash_deg),
         ("sag_sigma_deg", g.arm_sag_deg),
         ("bow_sigma_m", rig.sample.bow_sigma_m),
+        ("camera_distance_sigma_m", g.camera_distance_sigma_m),
+        ("flat_falloff_sigma", rig.calibration.flat_source_falloff_sigma),
+        ("ambient_sigma_W_m2_sr", rig.light.ambient_sigma_W_m2_sr),
     ):
         if value:
             out[key] = float(value)

@@ -109,6 +109,9 @@ _BUDGET_WORDS = {
     "play_deg": ("gears' play", lambda v: f"{v:.3g}°"),
     "sag_sigma_deg": ("arm sag", lambda v: f"{v:.3g}°"),
     "bow_sigma_m": ("sample bow", lambda v: f"{1e3 * v:.3g} mm"),
+    "camera_distance_sigma_m": ("camera distance", lambda v: f"{1e3 * v:.3g} mm"),
+    "flat_falloff_sigma": ("flat fall-off", lambda v: f"{100 * v:.3g} %"),
+    "ambient_sigma_W_m2_sr": ("ambient light", lambda v: f"{v:.2g} W/m²/sr"),
 }
 
 
@@ -149,10 +152,11 @@ def _plan_on_realistic_rig(rows, param, rel, material, rig_cfg, stated, results)
             + f") in place of the study's ({100 * scale_study:.3g} %)."
         )
     angles = [k for k in _BUDGET_WORDS if k not in ("cert_rel_sigma", "distance_sigma_m")]
-    if study and any(abs(stated.get(k, 0.0) - study[k]) > 1e-9 for k in angles):
+    # a study recorded before a size was budgeted states none of it (.get: 0)
+    if study and any(abs(stated.get(k, 0.0) - study.get(k, 0.0)) > 1e-9 for k in angles):
         words.append(
             f"The study's realistic rig states {_budget_words(study)}; yours states "
-            f"{_budget_words(stated) or 'none of these'}: the arms' part of the floor moves "
+            f"{_budget_words(stated) or 'none of these'}: the floor's part from them moves "
             "with those sizes."
         )
     if top["material"] != material:
