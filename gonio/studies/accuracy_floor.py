@@ -23,13 +23,22 @@ def _pct(x: float) -> str:
 
 
 def _budget_sentence(budget: dict[str, float]) -> str:
+    more = [
+        f"{word} {fmt(budget[key])}"
+        for key, word, fmt in (
+            ("bow_sigma_m", "the sample's bow", lambda v: f"{1e3 * v:.3g} mm"),
+            ("camera_distance_sigma_m", "the camera's distance", lambda v: f"{1e3 * v:.3g} mm"),
+            ("flat_falloff_sigma", "the flat source's fall-off", lambda v: f"{100 * v:.3g} %"),
+        )
+        if budget.get(key)  # a record made before the size was budgeted has none
+    ]
     return (
         f"the lamp's certificate {100 * budget['cert_rel_sigma']:.3g} %, its distance "
         f"{1e3 * budget['distance_sigma_m']:.3g} mm, each arm's encoder zero "
         f"{budget['zero_sigma_deg']:.3g}°, the sample's tilt {budget['tilt_sigma_deg']:.3g}° "
         f"about x and y, each axis' gear play {budget['play_deg']:.3g}° "
-        f"(± {100 * budget['play_spread']:.0f} %) and each elevation arm's sag "
-        f"{budget['sag_sigma_deg']:.3g}° (k = 1)"
+        f"(± {100 * budget['play_spread']:.0f} %), each elevation arm's sag "
+        f"{budget['sag_sigma_deg']:.3g}°" + "".join(f", {m}" for m in more) + " (k = 1)"
     )
 
 
@@ -69,9 +78,10 @@ def realistic_section(
         )
         lines += [
             f"- The same for every rig: {lamp}the simulation stages {', '.join(info['stages'])}.",
-            "- Off, because no budget component sizes them yet (the fit could only be wrong "
-            "about them): the camera's non-linearity, the flat source's fall-off, stray light, "
-            "the camera's distance, the sample's bow.",
+            "- How gonio handles each (docs/simulator.md): the drawn errors, the lamp's disk "
+            "(the rig states its radius) and the bow, camera distance and flat fall-off as the "
+            "fit's nuisances; the camera's non-linearity measured from the brackets and taken "
+            "out; the room's stray light on but not stated by this rig, so not carried.",
         ]
     if png:
         lines += ["", f"![error vs lab time on the realistic and the ideal rig]({png})"]
