@@ -521,59 +521,81 @@ def _budget_components(
     return budget
 
 
+def _nuisance_component(name: str, shared_by: str, sigma, unstated: str, stated) -> dict:
+    """A shared error the fit carries as a nuisance when the rig states its size: the budget's
+    row, with ``stated()`` (the size's words and what the fit needs) merged in, or named as
+    left out of every interval (``unstated``, the rig key and a typical size) when it does not."""
+    comp: dict = {
+        "component": name,
+        "type": "B",
+        "relative_sigma": None,
+        "sigma_deg": None,
+        "shared_by": shared_by,
+    }
+    if sigma is None:
+        comp.update(size=f"not stated in the rig file ({unstated}", propagated=False)
+    else:
+        comp.update(stated())
+    return comp
+
+
+def _bow_component(rig: RigConfig) -> dict:
+    """The sample's bow (rig ``sample.bow_sigma_m``): a dome h = s (1 − (x² + y²)/R²) over the
+    half side R leans the normal at (x, y) by the slope −2 s (x, y)/R², one error for every
+    sample seen at that place on the sample. A fit that knows where each sample lies on the
+    sample (the arms' positions, gonio.arm_poses) carries s as a nuisance (fitting.nuisance)."""
+    sigma, half = rig.sample.bow_sigma_m, 0.5 * rig.sample.size_m
+    return _nuisance_component(
+        "sample flatness (bow)",
+        "every sample at the same place on the sample (the whole run)",
+        sigma,
+        "sample.bow_sigma_m): a sheet curls 0.1–1 mm over 50 mm, a lapped tile ~10 µm",
+        lambda: {
+            "bow_sigma_m": sigma,
+            "half_side_m": half,
+            "size": f"sagitta σ {1e3 * sigma:.3g} mm over a {1e3 * half:.3g} mm half side "
+            f"(edge slope {math.degrees(2.0 * sigma / half):.2g}°)",
+        },
+    )
+
+
 def _ambient_component(rig: RigConfig, scale: _Scale) -> dict:
     """Light the lamp does not cause: radiance L_a A(ω_o) from the sample (A its directional
     albedo, ≤ 1), which calibration divides by the lamp's irradiance I cos θ_i / r² like the
     lamp's own, so every f carries an additive L_a A r² / (I cos θ_i). With the rig's
     ``light.ambient_sigma_W_m2_sr`` the fit carries L_a A as a nuisance; the per-channel I
     (W/sr, or the reference target's k) it needs is written here."""
-    comp: dict = {
-        "component": "ambient light (not from the lamp)",
-        "type": "B",
-        "relative_sigma": None,
-        "sigma_deg": None,
-        "shared_by": "every sample (an offset, largest relative to f where f is small)",
-    }
     sigma = rig.light.ambient_sigma_W_m2_sr
-    if sigma is None:
-        comp.update(
-            size="not stated in the rig file (light.ambient_sigma_W_m2_sr): a dark lab with "
-            "black curtains ~5e-4 W m⁻² sr⁻¹, ~0.1 % of a diffuse f",
-            propagated=False,
-        )
-        return comp
-    comp.update(
-        ambient_sigma_W_m2_sr=sigma,
-        intensity_W_sr=dict(zip("RGB", (float(v) for v in scale.intensity), strict=False)),
-        size=f"σ {sigma:.3g} W m⁻² sr⁻¹ (times the sample's albedo ≤ 1)",
+    return _nuisance_component(
+        "ambient light (not from the lamp)",
+        "every sample (an offset, largest relative to f where f is small)",
+        sigma,
+        "light.ambient_sigma_W_m2_sr): a dark lab with black curtains ~5e-4 W m⁻² sr⁻¹, "
+        "~0.1 % of a diffuse f",
+        lambda: {
+            "ambient_sigma_W_m2_sr": sigma,
+            "intensity_W_sr": dict(zip("RGB", (float(v) for v in scale.intensity), strict=False)),
+            "size": f"σ {sigma:.3g} W m⁻² sr⁻¹ (times the sample's albedo ≤ 1)",
+        },
     )
-    return comp
 
 
 def _camera_distance(rig: RigConfig) -> dict:
     """The camera's distance to its entrance pupil: each pixel's ray traced from the wrong
     point meets the sample elsewhere, where the lamp's irradiance differs (≤ 0.1 % of f for
     5 mm at 0.5 m). Carried as a nuisance by a fit that knows the arms' positions."""
-    comp: dict = {
-        "component": "camera distance (entrance pupil)",
-        "type": "B",
-        "relative_sigma": None,
-        "sigma_deg": None,
-        "shared_by": "every sample of the run",
-    }
     sigma = rig.geometry.camera_distance_sigma_m
-    if sigma is None:
-        comp.update(
-            size="not stated in the rig file (geometry.camera_distance_sigma_m): a pupil inside "
-            "a lens is known to ~5–10 mm without a measurement; its effect on f is ≲ 0.1 %",
-            propagated=False,
-        )
-    else:
-        comp.update(
-            camera_distance_sigma_m=sigma,
-            size=f"σ {1e3 * sigma:.3g} mm at {rig.geometry.camera_distance_m:g} m",
-        )
-    return comp
+    return _nuisance_component(
+        "camera distance (entrance pupil)",
+        "every sample of the run",
+        sigma,
+        "geometry.camera_distance_sigma_m): a pupil inside a lens is known to ~5–10 mm "
+        "without a measurement; its effect on f is ≲ 0.1 %",
+        lambda: {
+            "camera_distance_sigma_m": sigma,
+            "size": f"σ {1e3 * sigma:.3g} mm at {rig.geometry.camera_distance_m:g} m",
+        },
+    )
 
 
 def _flat_source_component(rig: RigConfig, cal: RunCalibration) -> dict:
@@ -583,69 +605,33 @@ def _flat_source_component(rig: RigConfig, cal: RunCalibration) -> dict:
     the rig's ``calibration.flat_source_falloff_sigma`` the fit carries a as a nuisance, ρ per
     row from its pixel and the intrinsics written here (lens distortion left out: it moves ρ
     by k₁ρ², a few % of a few %)."""
-    comp: dict = {
-        "component": "flat field source (fall-off)",
-        "type": "B",
-        "relative_sigma": None,
-        "sigma_deg": None,
-        "shared_by": "every sample seen at the same place in the frame (the whole run)",
-    }
-    sigma = rig.calibration.flat_source_falloff_sigma
-    if sigma is None:
-        comp.update(
-            size="not stated in the rig file (calibration.flat_source_falloff_sigma): an "
-            "integrating sphere's port ≤ 1 %, LED panels 2–5 % centre to corner",
-            propagated=False,
-        )
-        return comp
-    intr = cal.intrinsics
-    corners = [(0.0, 0.0), (intr.width - 1.0, 0.0), (0.0, intr.height - 1.0),
-               (intr.width - 1.0, intr.height - 1.0)]  # fmt: skip
-    r2_corner = max(((u - intr.cx) / intr.fx) ** 2 + ((v - intr.cy) / intr.fy) ** 2
-                    for u, v in corners)  # fmt: skip
-    comp.update(
-        falloff_sigma=sigma,
-        field={
-            "cx": intr.cx,
-            "cy": intr.cy,
-            "fx": intr.fx,
-            "fy": intr.fy,
-            "r2_corner": r2_corner,
-        },  # fmt: skip
-        size=f"σ {100 * sigma:.3g} % from the optical axis to the frame's corner",
-    )
-    return comp
+    sigma, intr = rig.calibration.flat_source_falloff_sigma, cal.intrinsics
 
+    def stated() -> dict:
+        corners = [(0.0, 0.0), (intr.width - 1.0, 0.0), (0.0, intr.height - 1.0),
+                   (intr.width - 1.0, intr.height - 1.0)]  # fmt: skip
+        r2_corner = max(((u - intr.cx) / intr.fx) ** 2 + ((v - intr.cy) / intr.fy) ** 2
+                        for u, v in corners)  # fmt: skip
+        return {
+            "falloff_sigma": sigma,
+            "field": {
+                "cx": intr.cx,
+                "cy": intr.cy,
+                "fx": intr.fx,
+                "fy": intr.fy,
+                "r2_corner": r2_corner,
+            },  # fmt: skip
+            "size": f"σ {100 * sigma:.3g} % from the optical axis to the frame's corner",
+        }
 
-def _bow_component(rig: RigConfig) -> dict:
-    """The sample's bow (rig ``sample.bow_sigma_m``): a dome h = s (1 − (x² + y²)/R²) over the
-    half side R leans the normal at (x, y) by the slope −2 s (x, y)/R², one error for every
-    sample seen at that place on the sample. A fit that knows where each sample lies on the
-    sample (the arms' positions, gonio.arm_poses) carries s as a nuisance (fitting.nuisance)."""
-    comp: dict = {
-        "component": "sample flatness (bow)",
-        "type": "B",
-        "relative_sigma": None,
-        "sigma_deg": None,
-        "shared_by": "every sample at the same place on the sample (the whole run)",
-    }
-    sigma = rig.sample.bow_sigma_m
-    if sigma is None:
-        comp.update(
-            size="not stated in the rig file (sample.bow_sigma_m): a sheet curls 0.1–1 mm "
-            "over 50 mm, a lapped tile ~10 µm",
-            propagated=False,
-        )
-        return comp
-    half = 0.5 * rig.sample.size_m
-    edge_deg = math.degrees(2.0 * sigma / half)
-    comp.update(
-        bow_sigma_m=sigma,
-        half_side_m=half,
-        size=f"sagitta σ {1e3 * sigma:.3g} mm over a {1e3 * half:.3g} mm half side "
-        f"(edge slope {edge_deg:.2g}°)",
+    return _nuisance_component(
+        "flat field source (fall-off)",
+        "every sample seen at the same place in the frame (the whole run)",
+        sigma,
+        "calibration.flat_source_falloff_sigma): an integrating sphere's port ≤ 1 %, LED "
+        "panels 2–5 % centre to corner",
+        stated,
     )
-    return comp
 
 
 def _evidence(cal: RunCalibration, monitors: list[float]) -> dict:

@@ -757,9 +757,7 @@ def _ambient_rows(d: ChannelData, intensity_w_sr: dict[str, float]) -> None:
     i_c = intensity_w_sr.get(d.channel)
     if d.arm is None or "light_pos" not in d.arm or not i_c:
         return
-    light, cam = d.arm["light_pos"], d.arm["cam_pos"]
-    p = cam - (cam[:, 2] / d.wo[:, 2])[:, None] * d.wo
-    r2 = np.sum((light - p) ** 2, axis=1)
+    r2 = np.sum((d.arm["light_pos"] - d.arm["point"]) ** 2, axis=1)
     d.arm["ambient_per_W"] = r2 / (i_c * d.wi[:, 2])
 
 
@@ -769,10 +767,8 @@ def _emission_cos(d: ChannelData) -> np.ndarray | float:
     without them."""
     if d.arm is None or "light_pos" not in d.arm:
         return 1.0
-    light, cam = d.arm["light_pos"], d.arm["cam_pos"]
-    p = cam - (cam[:, 2] / d.wo[:, 2])[:, None] * d.wo
-    axis = normalize(-light)
-    return np.sum(axis * normalize(p - light), axis=1)
+    light = d.arm["light_pos"]
+    return np.sum(normalize(-light) * normalize(d.arm["point"] - light), axis=1)
 
 
 def _perpendicular_basis(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

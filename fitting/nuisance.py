@@ -83,6 +83,7 @@ __all__ = [
     "arm_deltas",
     "ARMS",
     "FACTOR_NUISANCES",
+    "surface_point",
 ]
 
 #: Prior box of a nuisance parameter, in its prior σ: wide enough never to bind (P(|z| > 6) ≈
@@ -344,7 +345,7 @@ def measured_geometry(
         wi2, wo2 = shifted_directions(wi, wo, rows["phi_i"], rows["phi_o"], delta, kinematics)
         return wi2, wo2, wi2[..., 2] / wi[:, 2]
     light, cam = rows["light_pos"], rows["cam_pos"]
-    p = cam - (cam[:, 2] / wo[:, 2])[:, None] * wo  # the pixel's point on z = 0
+    p = rows["point"] if "point" in rows else surface_point(cam, wo)
     d_c = delta.get("camera_r")
     cam_true = cam
     if d_c is not None:  # the pupil further along the line of sight: the same rays from there
@@ -368,6 +369,12 @@ def measured_geometry(
     wi2 = _into_sample(to_new / np.sqrt(r2_new)[..., None], delta)
     wo2 = _into_sample(-ray, delta)
     return wi2, wo2, r2_old / r2_new * wi2[..., 2] / wi[:, 2]
+
+
+def surface_point(cam_pos: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """Where each pixel's ray, from the camera at `cam_pos` back along −ω_o, meets the sample
+    plane z = 0 (each (N, 3))."""
+    return cam_pos - (cam_pos[:, 2] / wo[:, 2])[:, None] * wo
 
 
 def arm_deltas(rows: dict[str, np.ndarray], natural_rad: dict[str, np.ndarray]) -> dict:
@@ -658,9 +665,9 @@ def arm_rows(  # table: SampleTable
     light_pos, cam_pos = per_light[inverse], per_cam[inverse]
     if np.all(np.isfinite(light_pos)) and np.all(np.isfinite(cam_pos)):
         out["light_pos"], out["cam_pos"] = light_pos, cam_pos
+        point = surface_point(cam_pos, spherical_to_vector(table.theta_o, table.phi_o))
+        out["point"] = point
         if bow_half_side_m:
-            wo = spherical_to_vector(table.theta_o, table.phi_o)
-            point = cam_pos - (cam_pos[:, 2] / wo[:, 2])[:, None] * wo  # the row's point, z = 0
             k = 2.0 / bow_half_side_m**2
             out["bow_x"], out["bow_y"] = k * point[:, 0], k * point[:, 1]
     return out
