@@ -178,32 +178,33 @@ def fit_least_squares(
     """
     prob = _Problem.of(lik, weighting, loss, f_scale)
     lo, hi, free, nuisance, centre = prob.lo, prob.hi, prob.free, prob.nuisance, prob.centre
-    prior_cols, prior_c, prior_sd = prob.prior_cols, prob.prior_c, prob.prior_sd
+    prior_sd_all = np.array([s.prior_sigma or 1.0 for s in lik.space.specs])
     loss, f_scale = prob.loss, prob.f_scale
     if starts is None:
         starts = start_points(lik, n_starts, seed)
     starts = np.array(starts, dtype=np.float64)
     starts[:, nuisance] = centre[nuisance]
 
-    def make_fun(base: np.ndarray):
+    def make_fun(base: np.ndarray, cols: np.ndarray = free):
+        prior = np.flatnonzero(nuisance[cols])  # the free nuisances among `cols`
+        c, sd = centre[cols][prior], prior_sd_all[cols][prior]
+
         def fun(xf: np.ndarray) -> np.ndarray:
             x = base.copy()
-            x[free] = xf
+            x[cols] = xf
             r = lik.residuals(x, weighting)
-            if not prior_cols.size:
+            if not prior.size:
                 return r
-            return np.concatenate([r, (xf[prior_cols] - prior_c) / prior_sd])
+            return np.concatenate([r, (xf[prior] - c) / sd])
 
         return fun
 
-    best = None
-    costs = []
-    for x0 in starts:
-        fun = make_fun(x0)
+    def solve(x0: np.ndarray, cols: np.ndarray):
+        fun = make_fun(x0, cols)
         res = least_squares(
             fun,
-            x0[free],
-            bounds=(lo[free], hi[free]),
+            x0[cols],
+            bounds=(lo[cols], hi[cols]),
             loss=loss,
             f_scale=f_scale,
             x_scale="jac",
@@ -212,12 +213,28 @@ def fit_least_squares(
         )
         # Compare starts on the plain cost so different robust losses are comparable.
         plain = 0.5 * float(np.sum(fun(res.x) ** 2)) if loss == "linear" else float(res.cost)
+        x = x0.copy()
+        x[cols] = res.x
+        return plain, x, res.success
+
+    # With the shared errors' nuisances free, the starts search the model's parameters alone,
+    # the nuisances held at their prior's centre, and the best start is then polished with
+    # everything free: the starts are there to find the model's basin (the m grid), and the
+    # nuisances, a prior's width from their centre, do not move it — a realistic rig's 19
+    # parameters fitted from all 4 starts reached one optimum in each repeat tried, at ~1 s a
+    # start, where the 3 model parameters take 0.02 s (measured).
+    search = free & ~nuisance if (nuisance & free).any() and len(starts) > 1 else free
+    best = None
+    costs = []
+    for x0 in starts:
+        plain, x, success = solve(x0, search)
         costs.append(plain)
         if best is None or plain < best[0]:
-            x = x0.copy()
-            x[free] = res.x
-            best = (plain, x, res.success, fun)
-    cost, x, success, fun = best
+            best = (plain, x, success)
+    if search is not free:
+        best = solve(best[1], free)
+    cost, x, success = best
+    fun = make_fun(x)
     n = lik.n_exact
     jac = _jacobian(fun, x[free], lo[free], hi[free])
     cov = None
