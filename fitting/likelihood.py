@@ -389,10 +389,11 @@ class Likelihood:
         out = []
         for i, d in enumerate(self.data if data is None else data):
             params = self.space.channel_params(natural, d.channel)
-            shifts = arm_deltas(d.arm, angles) if angles else {}
+            linear = angles and self._angle_ref is not None and data is None
+            shifts = arm_deltas(d.arm, angles) if angles and not linear else {}
             with np.errstate(all="ignore"):
-                if shifts and self._angle_ref is not None and data is None:
-                    fm = self._evaluate_linearised(i, params, shifts)
+                if linear:
+                    fm = self._evaluate_linearised(i, params, angles)
                 elif any(np.any(v != 0) for v in shifts.values()):
                     fm = self._evaluate_shifted(d, params, shifts)
                 else:  # the arms where they were recorded
@@ -422,10 +423,14 @@ class Likelihood:
         """Linearise the arms' zero errors about θ₀'s (the MCMC's hot path).
 
         f(p, δ) = f(p, δ₀) · (1 + Σ_k (δ_k − δ₀_k) ∂ln f/∂δ_k), the log-derivatives taken
-        once at (p₀, δ₀) by central differences. Exact at δ₀ and, the model being smooth in
-        the angles, off by ½ ∂²f/∂δ² Δδ² + ∂²ln f/∂δ∂p Δδ Δp: with Δδ a posterior's width
-        around a least-squares δ₀ (≈ 0.01°, at most the prior's 0.2–0.3°) and a lobe of width
-        m, of relative size Δδ²/m² ≤ 1e-4 at m = 0.05 — far below a sample's noise."""
+        once at (p₀, δ₀) by central differences. Each arm's δ_k per row is linear in the angle
+        nuisances ν (fitting.nuisance.arm_deltas), so the sum is (ν − ν₀) · G per row with
+        G_ν = Σ_k ∂δ_k/∂ν ∂ln f/∂δ_k, also taken once: one matrix product per call of the
+        chain instead of the arms' per-row sums (about a quarter of a realistic fit's chain,
+        measured). Exact at δ₀ and, the model being smooth in the angles, off by
+        ½ ∂²f/∂δ² Δδ² + ∂²ln f/∂δ∂p Δδ Δp: with Δδ a posterior's width around a least-squares
+        δ₀ (≈ 0.01°, at most the prior's 0.2–0.3°) and a lobe of width m, of relative size
+        Δδ²/m² ≤ 1e-4 at m = 0.05 — far below a sample's noise."""
         x0 = np.atleast_2d(np.asarray(theta, dtype=np.float64))
         natural = self.space.natural_dict(x0)
         angles = {n: to_si(n, natural[n]) for n in ANGLE_NUISANCES if n in natural}
@@ -453,16 +458,21 @@ class Likelihood:
                         fs.append(f * ratio)
                     g = (fs[0] - fs[1]) / (2 * step) / f0
                     grads[arm] = np.where(np.isfinite(g), g, 0.0)
-            ref.append((wi0, wo0, ratio0, grads, delta0))
+            gain = np.zeros((len(angles), d.f.size))  # G (n_ν, N): ln f per unit of each ν
+            for j, name in enumerate(angles):
+                for arm, per_unit in arm_deltas(d.arm, {name: np.ones(1)}).items():
+                    gain[j] += per_unit[0] * grads[arm]
+            nu0 = np.array([v[0] for v in angles.values()])
+            ref.append((wi0, wo0, ratio0, gain, nu0))
         self._angle_ref = ref
 
-    def _evaluate_linearised(self, i: int, params: dict, shifts: dict) -> np.ndarray:
-        wi0, wo0, ratio0, grads, delta0 = self._angle_ref[i]
+    def _evaluate_linearised(self, i: int, params: dict, angles: dict) -> np.ndarray:
+        """The model at the arms' frozen directions, times 1 + (ν − ν₀) · G (_freeze_angles)
+        for the angle nuisances `angles` {name: (W,) SI}, in _freeze_angles' order."""
+        wi0, wo0, ratio0, gain, nu0 = self._angle_ref[i]
         fm = self.model.evaluate(params, wi0, wo0, precision=self.precision) * ratio0
-        lin = 1.0
-        for arm, g in grads.items():
-            lin = lin + (shifts[arm] - delta0[arm]) * g
-        return fm * lin
+        nu = np.stack([np.asarray(v, dtype=np.float64) for v in angles.values()], axis=-1)
+        return fm * (1.0 + (nu - nu0) @ gain)
 
     def _evaluate_shifted(self, d: ChannelData, params: dict, shifts: dict) -> np.ndarray:
         """The model per walker at the directions its arm-zero nuisances give (W, N): one
