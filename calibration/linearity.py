@@ -34,7 +34,9 @@ reach the clip and the unsaturated ones are a biased selection) — and every ne
 The correction applies y = 2 y_m / (1 + √(1 + 4 β y_m / Y)) (the exact inverse) to every
 bracket before the merge, when β differs from 0 by more than 3 σ; otherwise the response is
 called linear within what the brackets can see, and both cases are stated in the samples'
-budget with what remains (σ_β · Y at the clip)."""
+budget with what remains (σ_β · Y at the clip). Each sample records the level at which the merge
+read it (`bend_level`), and the fit carries what remains over those levels as a nuisance
+(fitting.nuisance, ``linearity_pct``)."""
 
 from __future__ import annotations
 
@@ -45,7 +47,7 @@ import numpy as np
 
 from calibration.hdr import local_mean
 
-__all__ = ["Linearity", "LinearityStats", "linearise_dn"]
+__all__ = ["Linearity", "LinearityStats", "bend_level", "linearise_dn"]
 
 #: The long bracket's predicted level, as a fraction of the clip, where pixels are used.
 LEVEL_RANGE = (0.05, 0.80)
@@ -89,6 +91,25 @@ class Linearity:
         if self.corrected:
             return f"{what}, corrected; what remains ≤ {100 * self.sigma:.2g} % of f (1σ)"
         return f"{what}: linear within that, not corrected"
+
+
+def bend_level(flux_e_s: np.ndarray, exposures_s: list, noise_e: list, clip_e: float) -> np.ndarray:
+    """Per pixel, the fraction of the clip Y at which the HDR merge read it: Σ_k w_k φ t_k / Y
+    over the brackets below the clip, w_k = t_k² / (φ t_k + σ_k²) the merge's own weights
+    (calibration.hdr.merge_brackets), φ the pixel's merged flux (e⁻/s per photosite) and σ_k
+    the bracket's signal-independent noise (e⁻). A bend b (y_m = y (1 + b y / Y) in every
+    bracket) moves the merged flux by the factor 1 + b · level, to first order; 1 where every
+    bracket is at the clip."""
+    phi = np.maximum(np.asarray(flux_e_s, dtype=np.float64), 0.0)
+    num = np.zeros_like(phi)
+    den = np.zeros_like(phi)
+    for t, sd in zip(exposures_s, noise_e, strict=True):
+        y = phi * float(t)
+        ok = y < clip_e
+        w = np.where(ok, float(t) ** 2 / (y + max(float(sd), 1e-6) ** 2), 0.0)
+        num += w * y / clip_e
+        den += w
+    return np.divide(num, den, out=np.ones_like(phi), where=den > 0)
 
 
 def linearise_dn(y_dn: np.ndarray, beta: float, clip_dn: float) -> np.ndarray:

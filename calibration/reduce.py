@@ -64,7 +64,7 @@ from calibration.darks import CalibrationFrameError, load_darks
 from calibration.decode import FrameError, FrameIntegrityError, decode_frame
 from calibration.flatfield import load_flat
 from calibration.geometry import Intrinsics, RigGeometry
-from calibration.linearity import MAX_POSES, Linearity, LinearityStats
+from calibration.linearity import MAX_POSES, Linearity, LinearityStats, bend_level
 from calibration.planes import (
     Plane,
     PlaneError,
@@ -901,7 +901,20 @@ def _reduce_pose(cal: RunCalibration, recs, decoded, intensity) -> Iterator[dict
         if cal.options.texel_mm:
             grid = TexelGrid(cal.options.texel_mm * 1e-3, cal.sample_size_m)
             piece["texel"] = grid.index(reg.point_m).astype(np.int32)
+        if cal.linearity is not None:  # the camera's remaining bend scales with it (linearity)
+            piece["bend_level"] = _region_level(cal, pl, exposures, reg, b).astype(np.float32)
         yield piece
+
+
+def _region_level(cal: RunCalibration, pl, exposures: list, reg, b: int) -> np.ndarray:
+    """Each region's mean bend_level (calibration.linearity) of its b × b pixels."""
+    gain = cal.radiometry.gain_e_per_dn
+    level = bend_level(pl.flux / pl.sites, exposures,
+                       [bracket_noise_e(cal, t) for t in exposures],
+                       cal.linearity.clip_dn * gain)  # fmt: skip
+    h, w = level.shape[0] // b, level.shape[1] // b
+    blocks = level[: h * b, : w * b].reshape(h, b, w, b).mean(axis=(1, 3))
+    return blocks[reg.rows, reg.cols]
 
 
 def _select(pl, seg, options):

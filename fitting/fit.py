@@ -212,7 +212,10 @@ def fit_setup(table: SampleTable, opt: FitOptions) -> FitSetup:
     )
     shared = (
         shared_errors(
-            read_budget(table.metadata), channels, positions=arm_positions_known(table.metadata)
+            read_budget(table.metadata),
+            channels,
+            positions=arm_positions_known(table.metadata),
+            levels="bend_level" in table.extra,
         )
         if opt.shared_errors and opt.mcmc is not None
         else None

@@ -412,6 +412,10 @@ class Likelihood:
                 fm = fm / (1.0 - to_si("flat_falloff_pct", falloff)[:, None] * d.arm["field_r2"])
             scale = natural.get(f"scale_{d.channel}")
             fm = fm if scale is None else fm * scale[:, None]
+            bend = natural.get("linearity_pct")
+            if bend is not None and d.arm is not None and "bend_level" in d.arm:
+                # the camera's bend calibration left in: 1 + b · level (calibration.linearity)
+                fm = fm * (1.0 + to_si("linearity_pct", bend)[:, None] * d.arm["bend_level"])
             ambient = natural.get("ambient_mW")
             if ambient is not None and d.arm is not None and "ambient_per_W" in d.arm:
                 # light the lamp does not cause, divided by the lamp's irradiance (nuisance)

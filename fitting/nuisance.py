@@ -43,6 +43,16 @@ marginalises it:
   the sample as radiance L_a A (A its directional albedo, slowly varying), which calibration
   divides by the lamp's irradiance: the measured f gains L_a A r² / (I_c cos θ_i) per row (r
   the lamp's distance to the row's point, I_c the channel's intensity). Added, not a factor.
+* ``linearity_pct`` (%, with the samples' ``bend_level``): the camera's bend b that calibration
+  left in (calibration.linearity: y_m = y (1 + b y / Y)), centred on 0 with the bracket
+  measurement's σ: taken out, what remains is that σ; not taken out (|β̂| < 3σ), the bend is
+  within it. Not centred on β̂ itself: β̂ comes from the same pixels as the samples, and a prior
+  centred on it counts their noise twice (over 64 ideal-rig runs, ks's error correlated −0.59
+  with β̂ and its mean moved −0.11 of a half-width; centred on 0, −0.16 and −0.03). The merged
+  flux moves by the factor 1 + b · level, level the fraction of the clip at which the merge
+  read the sample (calibration.linearity.bend_level): a factor per row. A correction decided
+  by the 3σ test and not carried had moved ks and m by 4–8 of their σ in the 3 of 256
+  ideal-rig runs where noise alone passed the test.
 * With the light's direction, the irradiance calibration divided by moves too: the measured f
   is the BRDF at the true directions times cos θ_i(true) / cos θ_i(recorded)
   (fitting.likelihood).
@@ -116,12 +126,12 @@ ANGLE_TERMS = {
 #: Units of a nuisance other than degrees, as their SI factor (the arm "light_r" is metres; the
 #: bow's sagitta is metres, its tilt per row radians), and the word for the unit.
 _SI = {"light_distance_mm": 1e-3, "sample_bow_um": 1e-6, "camera_distance_mm": 1e-3,
-       "flat_falloff_pct": 1e-2, "ambient_mW": 1e-3}  # fmt: skip
+       "flat_falloff_pct": 1e-2, "ambient_mW": 1e-3, "linearity_pct": 1e-2}  # fmt: skip
 _UNIT = {"light_distance_mm": "mm", "sample_bow_um": "µm", "camera_distance_mm": "mm",
-         "flat_falloff_pct": "%", "ambient_mW": "mW/m²/sr"}  # fmt: skip
+         "flat_falloff_pct": "%", "ambient_mW": "mW/m²/sr", "linearity_pct": "%"}  # fmt: skip
 #: Nuisances that multiply each row's f, or add to it, instead of moving its directions
 #: (fitting.likelihood).
-FACTOR_NUISANCES = ("flat_falloff_pct", "ambient_mW")
+FACTOR_NUISANCES = ("flat_falloff_pct", "ambient_mW", "linearity_pct")
 
 
 def to_si(name: str, value):
@@ -164,11 +174,17 @@ class SharedErrors:
 
 
 def shared_errors(
-    budget: list[dict] | None, channels: list[str], *, positions: bool = False
+    budget: list[dict] | None,
+    channels: list[str],
+    *,
+    positions: bool = False,
+    levels: bool = False,
 ) -> SharedErrors | None:
     """The shared errors of `budget` the fit can carry for `channels`; None when it states
     none with a size. With the arms' `positions` per capture (gonio.arm_poses), the lamp's
-    distance is carried as itself (its direction and 1/r² per pixel) instead of as a scale."""
+    distance is carried as itself (its direction and 1/r² per pixel) instead of as a scale.
+    With the samples' `levels` (their ``bend_level`` column), the camera's bend as calibration
+    measured it from the brackets (``linearity_pct``)."""
     angles: dict[str, float] = {}
     distance = [
         c
@@ -197,6 +213,11 @@ def shared_errors(
     kinematics = "two-arm"
     bow_half_side = flat_field = ambient = None
     for comp in budget or []:
+        bend = comp.get("measured")
+        if levels and isinstance(bend, dict) and bend.get("sigma") and "corrected" in bend:
+            # what the brackets left of the bend, within their σ (module docstring)
+            angles["linearity_pct"] = 100.0 * float(bend["sigma"])
+            carried.append(str(comp.get("component")))
         if positions and comp.get("ambient_sigma_W_m2_sr") and comp.get("intensity_W_sr"):
             angles["ambient_mW"] = 1e3 * float(comp["ambient_sigma_W_m2_sr"])
             ambient = {str(k): float(v) for k, v in comp["intensity_W_sr"].items()}
@@ -628,6 +649,8 @@ def arm_rows(  # table: SampleTable
     }
     for axis in ("light_theta", "camera_theta", "light_phi", "camera_phi"):
         out["side_" + axis] = np.zeros(n)
+    if "bend_level" in table.extra:  # the camera's remaining bend scales with it (linearity)
+        out["bend_level"] = np.asarray(table.extra["bend_level"], dtype=np.float64)
     px, py = table.extra.get("pixel_x"), table.extra.get("pixel_y")
     if flat_field and px is not None and py is not None:
         u = (np.asarray(px, np.float64) - flat_field["cx"]) / flat_field["fx"]

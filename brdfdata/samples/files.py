@@ -344,6 +344,8 @@ def table_from_arrow(
         for name in ("capture_id", "pixel_x", "pixel_y", "texel")
         if name in arrow.column_names
     }
+    if "bend_level" in arrow.column_names:
+        extra["bend_level"] = col("bend_level", np.float64)
     channel = _channel_column(arrow, path)
     table = SampleTable(
         channel=channel, f=f, sigma=sigma, flags=flags, extra=extra, metadata=meta, **angles

@@ -49,6 +49,10 @@ OPTIONAL_COLUMNS: dict[str, pa.DataType] = {
     # Per-texel samples (calibration.texels): the index iy·n + ix of the texel of the sample
     # plane the sample's surface point falls in; the grid is in metadata key "gonio.texels".
     "texel": pa.int32(),
+    # The fraction of the camera's clip at which calibration's HDR merge read the sample
+    # (calibration.linearity.bend_level): what the camera's remaining bend is proportional to,
+    # for the fit's linearity nuisance (fitting.nuisance, ``linearity_pct``).
+    "bend_level": pa.float32(),
 }
 CHANNELS = ("R", "G", "B", "Y")
 FORMAT_NAMES = {"rgl": "an RGL tensor", "merl": "a MERL .binary", "csv": "a delimited text"}

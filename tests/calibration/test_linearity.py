@@ -68,3 +68,33 @@ def test_a_datasheet_sized_bend_is_found_in_noise_and_a_straight_one_is_not(tmp_
           f"({got['pixels']} pixels, corrected {got['corrected']})")  # fmt: skip
     assert abs(got["beta"] - truth) < 3 * got["sigma"]
     assert got["corrected"] == (beta > 0)
+
+
+def test_each_samples_bend_level_is_where_the_worlds_bend_acts(tmp_path, monkeypatch) -> None:
+    """The fit carries the bend calibration leaves in as 1 + b · level per sample (fitting.nuisance,
+    ``linearity_pct``), level the samples' ``bend_level`` column (calibration.linearity.bend_level:
+    the fraction of the clip at which the merge read the sample, from the merge's own weights).
+    Against the world: a 2 % bend left in the samples (the 3σ test switched off, here only, so
+    that calibration does not take it out), noise-free and paired with the straight run, moves
+    each f by the factor 1 + β·level with the world's β (in calibration's terms). Tolerance: the
+    first-order model misses (β·level)² ≤ 4e-4, 2 % of the effect at the top; a 4×4 block's mean
+    of f·level differs from f·mean(level) by the image's curvature (< 1 %); DN rounding is
+    < 2 % of the effect where level > 0.1 (the rows compared)."""
+    import calibration.linearity
+
+    monkeypatch.setattr(calibration.linearity, "DETECT_Z", np.inf)
+    beta = 0.02
+    linear = effect_run(tmp_path / "linear", 0.0, exposures_s=BRACKETS)
+    bent = effect_run(tmp_path / "bent", beta, exposures_s=BRACKETS)
+    assert not _measured(bent)["corrected"]
+    a, b, good = paired_rows(linear, bent)
+    level = np.asarray(linear.extra["bend_level"])[a]
+    good &= (linear.f[a] > 0) & (level > 0.1)
+    slope = (bent.f[b][good] / linear.f[a][good] - 1.0) / (
+        _beta_in_calibration_terms(beta) * level[good]
+    )
+    print(f"bend level: rows {good.sum()}, level up to {level[good].max():.2f}; effect over "
+          f"β·level median {np.median(slope):.3f}, 5–95 % {np.quantile(slope, [0.05, 0.95])}")  # fmt: skip
+    assert level[good].max() > 0.5  # the run reaches well into the bend
+    assert abs(np.median(slope) - 1.0) < 0.03
+    assert np.all(np.abs(np.quantile(slope, [0.05, 0.95]) - 1.0) < 0.05)
