@@ -14,6 +14,8 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtri
 
+from simulator.scene import StrayLightSpec
+
 __all__ = ["InstrumentBudget", "latin_hypercube_normal", "sobol_normal"]
 
 _ZERO_AXES = ("light_theta", "camera_theta", "camera_phi")
@@ -51,9 +53,13 @@ class InstrumentBudget:
     #: panels' uniformity specs 2–5 % (an integrating sphere's port ≤ 1 %); either sign (an
     #: edge-lit panel is brighter at its edges).
     flat_falloff_sigma: float = 0.02
+    #: Light the lamp does not cause (the room, a monitor, a controller's LED), as the radiance
+    #: it gives a white surface: a dark lab with black curtains ~5e-4 W m⁻² sr⁻¹ (~0.1 % of a
+    #: diffuse f at 0.5 m from a 1 W/sr lamp). Never negative: the world draws σ·|z|.
+    ambient_sigma_W_m2_sr: float = 5e-4
 
     #: How many standard-normal numbers one world draws (`world`'s `z`).
-    N_DRAWS = 1 + 1 + len(_ZERO_AXES) + 2 + len(_PLAY_AXES) + len(_SAG_AXES) + 3
+    N_DRAWS = 1 + 1 + len(_ZERO_AXES) + 2 + len(_PLAY_AXES) + len(_SAG_AXES) + 4
 
     def stated(self) -> dict[str, float]:
         return asdict(self)
@@ -70,7 +76,11 @@ class InstrumentBudget:
                     update={"flat_source_falloff_sigma": self.flat_falloff_sigma}
                 ),
                 "light": rig.light.model_copy(
-                    update={"intensity_rel_sigma": self.cert_rel_sigma, "radius_m": lamp_radius_m}
+                    update={
+                        "intensity_rel_sigma": self.cert_rel_sigma,
+                        "radius_m": lamp_radius_m,
+                        "ambient_sigma_W_m2_sr": self.ambient_sigma_W_m2_sr,
+                    }
                 ),
                 "geometry": rig.geometry.model_copy(
                     update={
@@ -89,14 +99,15 @@ class InstrumentBudget:
         """`scene` (simulator.scene.Scene) as one rig of this budget: its lamp, distance, arm
         zeros, sample tilt, gears' play and arms' sag set from the `N_DRAWS` standard-normal
         numbers `z`, and sensor noise from `seed`: its lamp, distance, arm zeros, sample tilt,
-        gears' play, arms' sag, sample bow, camera distance and flat-source fall-off. The rest
-        stays as `scene` has it: the lamp's size and drift, the camera's non-linearity
-        (calibration measures it from the brackets) and stray light."""
+        gears' play, arms' sag, sample bow, camera distance, flat-source fall-off and room
+        light. The rest stays as `scene` has it: the lamp's size and drift and the camera's
+        non-linearity (calibration measures it from the brackets)."""
         z = np.asarray(z, float)
         if z.shape != (self.N_DRAWS,):
             raise ValueError(f"one world takes {self.N_DRAWS} draws, got shape {z.shape}")
         zeros, tilt = z[2:5], z[5:7]
         plays, sags, bow, cam_r, falloff = z[7:11], z[11:13], z[13], z[14], z[15]
+        room = self.ambient_sigma_W_m2_sr * abs(float(z[16]))
         cert = 1.0 + self.cert_rel_sigma * z[0]
         geometry = scene.geometry.model_copy(
             update={
@@ -125,6 +136,7 @@ class InstrumentBudget:
                 "light": scene.light.model_copy(update={"intensity_W_sr": (cert, cert, cert)}),
                 "geometry": geometry,
                 "flat_source_falloff": self.flat_falloff_sigma * float(falloff),
+                "stray_light": StrayLightSpec(radiance_W_m2_sr=(room, room, room)),
                 "seed": seed,
             }
         )

@@ -3,13 +3,12 @@
 errors from the distributions its rig file states — the lamp's certificate (1.5 %), the lamp's
 distance (3 mm), the arms' encoder zeros (0.2° each), the sample's tilt (0.2° about x and y), the
 gears' play (0.3° ± 50 % per axis), the arms' sag (0.15°), the sample's bow (0.1 mm), the
-camera's distance (5 mm) and the flat source's fall-off (2 %) — on
-`configs/scenes/realistic.toml`, whose 5 mm lamp (the rig states its radius), drift, 0.5 % camera
-bend (calibration measures it from the brackets) and room light (5e-4 W m⁻² sr⁻¹, which this
-rig file does not state, so the fit does not carry it; docs/simulator.md) stay. Darks and a flat
-field are recorded, as a lab run would. A real rig has one such error for its life; coverage is
-a statement about rigs, so every repeat is another rig (simulator.instrument_draws.sobol_normal:
-why Sobol' points).
+camera's distance (5 mm), the flat source's fall-off (2 %) and the room's light (|N(0, 5e-4)|
+W m⁻² sr⁻¹) — on `configs/scenes/realistic.toml`, whose 5 mm lamp (the rig states its radius),
+drift and 0.5 % camera bend (calibration measures it from the brackets, and the fit carries what
+remains) stay. Darks and a flat field are recorded, as a lab run would. A real rig has one such
+error for its life; coverage is a statement about rigs, so every repeat is another rig
+(simulator.instrument_draws.sobol_normal: why Sobol' points).
 
 The fit carries the shared errors as nuisance parameters (fitting.nuisance): its 68 % interval
 must hold the truth in 55–80 % of repeats and its 95 % interval in ≥ 88 %, for kd, ks and m.
@@ -78,7 +77,8 @@ PLAN = PlanConfig(
 )
 #: What the rig file states (k = 1) and each repeat's world draws from: the lamp's certificate
 #: 1.5 %, its distance 3 mm, the three encoder zeros 0.2°, the tilts 0.2°, play 0.3° ± 50 %, sag
-#: 0.15° (simulator.instrument_draws.InstrumentBudget says where each size comes from).
+#: 0.15°, bow 0.1 mm, camera distance 5 mm, flat fall-off 2 %, room light 5e-4 W m⁻² sr⁻¹
+#: (simulator.instrument_draws.InstrumentBudget says where each size comes from).
 BUDGET = InstrumentBudget()
 FIT = dict(
     model="torrance-sparrow",
