@@ -29,6 +29,7 @@ def _budget_sentence(budget: dict[str, float]) -> str:
             ("bow_sigma_m", "the sample's bow", lambda v: f"{1e3 * v:.3g} mm"),
             ("camera_distance_sigma_m", "the camera's distance", lambda v: f"{1e3 * v:.3g} mm"),
             ("flat_falloff_sigma", "the flat source's fall-off", lambda v: f"{100 * v:.3g} %"),
+            ("ambient_sigma_W_m2_sr", "the room's light (σ·|z|)", lambda v: f"{v:.2g} W m⁻² sr⁻¹"),
         )
         if budget.get(key)  # a record made before the size was budgeted has none
     ]
@@ -40,6 +41,12 @@ def _budget_sentence(budget: dict[str, float]) -> str:
         f"(± {100 * budget['play_spread']:.0f} %), each elevation arm's sag "
         f"{budget['sag_sigma_deg']:.3g}°" + "".join(f", {m}" for m in more) + " (k = 1)"
     )
+
+
+def budget_has_room_light(info: dict[str, Any]) -> bool:
+    """Whether the study's record drew and stated the room's light (records before 2026-12-07
+    did not: the rig left it unstated)."""
+    return bool(info.get("budget", {}).get("ambient_sigma_W_m2_sr"))
 
 
 def realistic_section(
@@ -79,6 +86,12 @@ def realistic_section(
         lines += [
             f"- The same for every rig: {lamp}the simulation stages {', '.join(info['stages'])}.",
             "- How gonio handles each (docs/simulator.md): the drawn errors, the lamp's disk "
+            "(the rig states its radius) and the bow, camera distance, flat fall-off and room "
+            "light as the fit's nuisances; the camera's non-linearity measured from the "
+            "brackets, taken out, and what remains carried as a nuisance over each sample's "
+            "level."
+            if budget_has_room_light(info)
+            else "- How gonio handles each (docs/simulator.md): the drawn errors, the lamp's disk "
             "(the rig states its radius) and the bow, camera distance and flat fall-off as the "
             "fit's nuisances; the camera's non-linearity measured from the brackets and taken "
             "out; the room's stray light on but not stated by this rig, so not carried.",
