@@ -345,7 +345,19 @@ def table_from_arrow(
         if name in arrow.column_names
     }
     if "bend_level" in arrow.column_names:
-        extra["bend_level"] = col("bend_level", np.float64)
+        level = col("bend_level", np.float64)
+        # A fit multiplies each row's model by 1 + b · level: one NaN in a good row would make
+        # every walker's likelihood NaN, a failed fit with no word of why.
+        bad_level = (flags == 0) & ~(np.isfinite(level) & (level >= 0))
+        if bad_level.any():
+            first = int(np.flatnonzero(bad_level)[0])
+            raise SamplesError(
+                f"{path}: column 'bend_level' holds {level[first]:g} in row {first} "
+                f"({int(bad_level.sum())} good row(s) without a finite level ≥ 0); it is the "
+                "fraction of the camera's clip a sample was read at (docs/formats.md): drop the "
+                "column or those rows"
+            )
+        extra["bend_level"] = level
     channel = _channel_column(arrow, path)
     table = SampleTable(
         channel=channel, f=f, sigma=sigma, flags=flags, extra=extra, metadata=meta, **angles

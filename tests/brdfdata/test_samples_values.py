@@ -70,3 +70,20 @@ def test_dictionary_encoded_channels_still_load(tmp_path) -> None:
     arrow = _valid(tmp_path / "s.parquet")
     _with(arrow, "channel", pa.array(["G"] * 4).dictionary_encode(), tmp_path / "d.parquet")
     assert read_samples(tmp_path / "d.parquet").channel.tolist() == ["G"] * 4
+
+
+@pytest.mark.parametrize("bad", [np.nan, -0.5])
+def test_a_bend_level_the_fit_cannot_use_is_refused_in_one_line(tmp_path, bad) -> None:
+    """The fit multiplies each row's model by 1 + b · bend_level (fitting.nuisance): a NaN in a
+    good row would turn every likelihood into NaN, a failed fit with no word of why. A flagged
+    row may hold anything."""
+    arrow = _valid(tmp_path / "s.parquet")
+    level = pa.array([0.2, bad, 0.4, 0.5], pa.float32())
+    pq.write_table(arrow.append_column("bend_level", level), tmp_path / "bad.parquet")
+    with pytest.raises(SamplesError, match="column 'bend_level' holds .* in row 1"):
+        read_samples(tmp_path / "bad.parquet")
+    flagged = arrow.set_column(
+        arrow.schema.get_field_index("flags"), "flags", pa.array([0, 8, 0, 0], pa.int32())
+    )
+    pq.write_table(flagged.append_column("bend_level", level), tmp_path / "ok.parquet")
+    assert read_samples(tmp_path / "ok.parquet").extra["bend_level"][2] == pytest.approx(0.4)
