@@ -108,6 +108,8 @@ class _Problem:
     prior_cols: np.ndarray
     prior_c: np.ndarray
     prior_sd: np.ndarray
+    #: Every parameter's prior σ (1 where it has none), for a subset of the free columns.
+    prior_sd_all: np.ndarray
     loss: str
     f_scale: float
 
@@ -129,6 +131,7 @@ class _Problem:
             loss = "soft_l1" if weighting == "sigma" else "linear"
         if f_scale is None:
             f_scale = 3.0 if weighting == "sigma" else 1.0
+        sd_all = np.array([s.prior_sigma or 1.0 for s in space.specs])
         return cls(
             lo,
             hi,
@@ -137,7 +140,8 @@ class _Problem:
             centre,
             np.flatnonzero(nuisance[free]),
             centre[free & nuisance],
-            np.array([s.prior_sigma or 1.0 for s in space.specs])[free & nuisance],
+            sd_all[free & nuisance],
+            sd_all,
             loss,
             float(f_scale),
         )
@@ -178,7 +182,6 @@ def fit_least_squares(
     """
     prob = _Problem.of(lik, weighting, loss, f_scale)
     lo, hi, free, nuisance, centre = prob.lo, prob.hi, prob.free, prob.nuisance, prob.centre
-    prior_sd_all = np.array([s.prior_sigma or 1.0 for s in lik.space.specs])
     loss, f_scale = prob.loss, prob.f_scale
     if starts is None:
         starts = start_points(lik, n_starts, seed)
@@ -187,7 +190,7 @@ def fit_least_squares(
 
     def make_fun(base: np.ndarray, cols: np.ndarray = free):
         prior = np.flatnonzero(nuisance[cols])  # the free nuisances among `cols`
-        c, sd = centre[cols][prior], prior_sd_all[cols][prior]
+        c, sd = centre[cols][prior], prob.prior_sd_all[cols][prior]
 
         def fun(xf: np.ndarray) -> np.ndarray:
             x = base.copy()

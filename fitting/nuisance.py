@@ -214,7 +214,8 @@ def shared_errors(
     bow_half_side = flat_field = ambient = None
     for comp in budget or []:
         bend = comp.get("measured")
-        if levels and isinstance(bend, dict) and bend.get("sigma") and "corrected" in bend:
+        is_bend = str(comp.get("component", "")).startswith("linearity")
+        if levels and is_bend and isinstance(bend, dict) and bend.get("sigma"):
             # what the brackets left of the bend, within their σ (module docstring)
             angles["linearity_pct"] = 100.0 * float(bend["sigma"])
             carried.append(str(comp.get("component")))

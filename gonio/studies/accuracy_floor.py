@@ -49,6 +49,18 @@ def budget_has_room_light(info: dict[str, Any]) -> bool:
     return bool(info.get("budget", {}).get("ambient_sigma_W_m2_sr"))
 
 
+def _handled(room_light: bool) -> str:
+    """The rest of the sentence on how the fit handles the realistic rig's effects: records
+    from before 2026-12-07 neither stated the room's light nor carried the bend's remainder."""
+    if room_light:
+        return ("the bow, camera distance, flat fall-off and room light as the fit's nuisances; "
+                "the camera's non-linearity measured from the brackets, taken out, and what "
+                "remains carried as a nuisance over each sample's level.")  # fmt: skip
+    return ("the bow, camera distance and flat fall-off as the fit's nuisances; the camera's "
+            "non-linearity measured from the brackets and taken out; the room's stray light on "
+            "but not stated by this rig, so not carried.")  # fmt: skip
+
+
 def realistic_section(
     rows: list[dict[str, Any]], record: dict[str, Any], png: str | None
 ) -> list[str]:
@@ -86,15 +98,7 @@ def realistic_section(
         lines += [
             f"- The same for every rig: {lamp}the simulation stages {', '.join(info['stages'])}.",
             "- How gonio handles each (docs/simulator.md): the drawn errors, the lamp's disk "
-            "(the rig states its radius) and the bow, camera distance, flat fall-off and room "
-            "light as the fit's nuisances; the camera's non-linearity measured from the "
-            "brackets, taken out, and what remains carried as a nuisance over each sample's "
-            "level."
-            if budget_has_room_light(info)
-            else "- How gonio handles each (docs/simulator.md): the drawn errors, the lamp's disk "
-            "(the rig states its radius) and the bow, camera distance and flat fall-off as the "
-            "fit's nuisances; the camera's non-linearity measured from the brackets and taken "
-            "out; the room's stray light on but not stated by this rig, so not carried.",
+            "(the rig states its radius) and " + _handled(budget_has_room_light(info)),
         ]
     if png:
         lines += ["", f"![error vs lab time on the realistic and the ideal rig]({png})"]
