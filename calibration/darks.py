@@ -24,6 +24,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+import plumbing.numba_policy  # noqa: F401 — the vector width, chosen before a kernel here compiles
 from acquisition.store import RunStore
 from calibration.decode import DecodedFrame, FrameError, decode_frame
 from plumbing.errors import UserError

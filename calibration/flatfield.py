@@ -30,6 +30,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+import plumbing.numba_policy  # noqa: F401 — the vector width, chosen before a kernel here compiles
 from calibration.darks import (
     CalibrationFrameError,
     DarkLibrary,

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+import plumbing.numba_policy  # noqa: F401 — the vector width, chosen before a kernel here compiles
 from calibration.planes import Plane, block_all
 
 __all__ = ["RegionMeans", "region_means"]

@@ -37,6 +37,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+import plumbing.numba_policy  # noqa: F401 — the vector width, chosen before a kernel here compiles
+
 __all__ = ["Segmentation", "segment_sample", "iou", "polygon_mask"]
 
 

@@ -27,7 +27,7 @@ __all__ = [
     "blend_scene",
     "preview_png",
     "instrument_budget",
-    "latin_hypercube_normal",
+    "sobol_normal",
 ]
 
 
@@ -202,7 +202,7 @@ def instrument_budget(**sizes: Any) -> Any:
     return InstrumentBudget(**sizes)
 
 
-def latin_hypercube_normal(n: int, dims: int, seed: int) -> Any:
-    from simulator.instrument_draws import latin_hypercube_normal as _lhs
+def sobol_normal(n: int, dims: int, seed: int) -> Any:
+    from simulator.instrument_draws import sobol_normal as _sobol
 
-    return _lhs(n, dims, seed)
+    return _sobol(n, dims, seed)

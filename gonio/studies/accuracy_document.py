@@ -53,6 +53,11 @@ def _quick(cfg: StudyConfig) -> bool:
     )
 
 
+def _base(cfg: StudyConfig) -> StudyConfig:
+    """The configuration the page's command gives without `--rigs`."""
+    return StudyConfig.quick(cfg.seeds) if _quick(cfg) else StudyConfig(seeds=cfg.seeds)
+
+
 def write_markdown(
     path: Path,
     rows: list[dict[str, Any]],
@@ -85,7 +90,7 @@ def write_markdown(
         + (" --quick" if _quick(cfg) else "")
         + f" --seeds {cfg.seeds}"
         + (f" --rigs {cfg.realistic_seeds}" if cfg.realistic_plans else " --rigs 0")
-        * (cfg.realistic_seeds != StudyConfig().realistic_seeds or not cfg.realistic_plans)
+        * (cfg.realistic_seeds != _base(cfg).realistic_seeds or not cfg.realistic_plans)
         + " --out docs",
         "```",
         "",

@@ -94,7 +94,7 @@ FIT = dict(
 def _world_and_rig(k: int):
     """Repeat k's world (realistic.toml with a fresh draw of the shared errors, and fresh noise)
     and the rig file that states their distributions (configs/rigs/sim.toml plus the budget).
-    The draws are a Latin hypercube over the repeats (InstrumentBudget: why)."""
+    The draws are scrambled Sobol' points over the repeats (sobol_normal: why)."""
     base = load_scene(REPO / "configs" / "scenes" / "realistic.toml")
     z = sobol_normal(REPEATS, InstrumentBudget.N_DRAWS, seed=17)[k]
     scene = BUDGET.world(base, z, seed=3000 + k)

@@ -50,3 +50,31 @@ def test_the_kernels_are_found() -> None:
 @pytest.mark.parametrize("name,kernel", KERNELS, ids=[n for n, _ in KERNELS])
 def test_kernel_releases_the_gil(name: str, kernel) -> None:
     assert kernel.targetoptions.get("nogil") is True, f"{name} holds the GIL while it runs"
+
+
+def _kernel_modules() -> list[str]:
+    return sorted({name.rsplit(".", 1)[0] for name, _ in KERNELS})
+
+
+@pytest.mark.parametrize("module", _kernel_modules())
+def test_kernel_module_imports_the_compile_policy_itself(module: str) -> None:
+    """Every module that holds a kernel imports plumbing.numba_policy itself, not through a
+    sibling: the policy picks the vector width (numba's CPU features) when it is imported, and
+    numba fixes them at its first compile in a process. A process whose first kernel came from a
+    module without it (the darks' master, say, in a `gonio calibrate`) compiled every kernel with
+    the host's features instead — another key in numba's cache, so each kernel of the suite was
+    compiled twice over (measured: 66 of 156 cached builds under the second key) and ran with the
+    narrower vectors in those processes."""
+    import ast
+
+    mod = importlib.import_module(module)
+    tree = ast.parse(open(mod.__file__, encoding="utf-8").read())
+    imported = {
+        node.module if isinstance(node, ast.ImportFrom) else alias.name
+        for node in ast.walk(tree)
+        if isinstance(node, (ast.Import, ast.ImportFrom))
+        for alias in node.names
+    }
+    assert "plumbing.numba_policy" in imported, (
+        f"{module} defines numba kernels but does not import plumbing.numba_policy"
+    )
