@@ -227,8 +227,11 @@ def merge_frames_local(
     step = 2 if cfa else 1  # a mosaic's same-colour neighbours are 2 photosites away
     frames = (
         np.ascontiguousarray(dn).reshape(b, h, w * nc),
-        # A view where the strides allow (a window of the darks' stack, a broadcast level).
-        np.asarray(offset_dn, dtype=np.float64).reshape(b, h, w * nc),
+        # A view where the strides allow (a window of the darks' stack, a broadcast level),
+        # read-only whatever it was: numba compiles a kernel per argument type, and a writable
+        # window, a read-only broadcast and a stack were three compiles of the merge (~10 CPU-s
+        # each on a fresh checkout) where two now serve (the windows and the stacks).
+        _read_only(np.asarray(offset_dn, dtype=np.float64).reshape(b, h, w * nc)),
         float(gain_e_per_dn),
         float(white_dn),
         t,
@@ -247,6 +250,13 @@ def merge_frames_local(
     # Threads for large frames when they pay (the fitting kernels' policy, `gonio --threads`).
     dispatch("hdr_merge", _merge_par, _merge_ser, h * w * nc, frames, field, out)
     return flux.reshape(shape), var.reshape(shape), all_sat.reshape(shape)
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """A read-only view of `a` (no copy)."""
+    view = a.view()
+    view.flags.writeable = False
+    return view
 
 
 # The kernel works a row at a time in branch-free loops over the row's values (masks as 0/1
