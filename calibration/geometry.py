@@ -175,7 +175,7 @@ def pixel_geometry(
     half = sample_size_m / 2.0 - margin_m
     arrays = (geo.point_m, geo.wi, geo.wo, geo.light_distance_m, geo.on_sample)
     rays = (x, y, rot, cam, light, half, mask_only)
-    # Threads for large frames when they pay (the fitting kernels' policy, `gonio --threads`).
+    # Threads for large frames when they pay (the fitting kernels' policy: plumbing.numba_policy).
     dispatch("pixel_geometry", _rays_par, _rays_ser, h * w, rays, arrays)
     return geo
 

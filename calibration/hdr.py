@@ -247,7 +247,7 @@ def merge_frames_local(
         field = tuple(np.asarray(a, dtype=np.float64).reshape(h, w * nc) for a in flat)
         field = (*field, True)
     out = (flux, var, all_sat)
-    # Threads for large frames when they pay (the fitting kernels' policy, `gonio --threads`).
+    # Threads for large frames when they pay (the fitting kernels' policy: plumbing.numba_policy).
     dispatch("hdr_merge", _merge_par, _merge_ser, h * w * nc, frames, field, out)
     return flux.reshape(shape), var.reshape(shape), all_sat.reshape(shape)
 
