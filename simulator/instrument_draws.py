@@ -16,7 +16,7 @@ from scipy.special import ndtri
 
 from simulator.scene import StrayLightSpec
 
-__all__ = ["InstrumentBudget", "latin_hypercube_normal", "sobol_normal"]
+__all__ = ["InstrumentBudget", "sobol_normal"]
 
 _ZERO_AXES = ("light_theta", "camera_theta", "camera_phi")
 _PLAY_AXES = ("light_theta", "camera_theta", "light_phi", "camera_phi")
@@ -140,17 +140,6 @@ class InstrumentBudget:
                 "seed": seed,
             }
         )
-
-
-def latin_hypercube_normal(n: int, dims: int, seed: int) -> np.ndarray:
-    """(n, dims) standard-normal draws, a Latin hypercube: each column's draws fall one in each
-    1/n band of the distribution, in random order. Plain draws would make a coverage measure how
-    lucky n rigs were as much as the intervals (of 30 plain draws, the share inside ±1σ is
-    0.68 ± 0.085); stratified, each band is represented once and estimates stay unbiased
-    (McKay, Beckman & Conover 1979)."""
-    rng = np.random.default_rng(seed)
-    u = np.stack([(rng.permutation(n) + rng.uniform(size=n)) / n for _ in range(dims)], axis=1)
-    return ndtri(u)
 
 
 def sobol_normal(n: int, dims: int, seed: int) -> np.ndarray:
