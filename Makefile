@@ -102,12 +102,12 @@ chromium: $(STAMP)
 demo: setup
 	$(BIN)/gonio demo
 
-# One OpenBLAS thread per test worker: two workers already fill the two cores, and OpenBLAS's
-# spinning threads only slow both (tests/conftest.py says how much).
-# The sources byte-compiled once, before the suite starts its ~250 Python processes: where
-# PYTHONDONTWRITEBYTECODE is set (as on this project's machines) no process writes a .pyc, and
-# each one compiled the ~42k lines it imports again (0.2 CPU-s a process, measured); compileall
-# redoes only what changed since.
+# The sources are byte-compiled once before the suite starts its ~250 Python processes: where
+# PYTHONDONTWRITEBYTECODE is set (as on the machine docs/performance.md measures) no process
+# writes a .pyc, and each one compiled the ~42k lines it imports again (0.2 CPU-s a process,
+# measured); compileall redoes only what changed since. One OpenBLAS thread per test worker: two
+# workers already fill the two cores, and OpenBLAS's spinning threads only slow both
+# (tests/conftest.py says how much).
 PACKAGES := acquisition brdfdata calibration fitting gonio plumbing simulator tools tests
 test: setup
 	$(BIN)/ruff check .
