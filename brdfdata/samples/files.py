@@ -19,6 +19,7 @@ import pyarrow.parquet as pq
 
 from brdfdata.samples.guards import check_samples
 from brdfdata.samples.table import (
+    EXCLUDING,
     FORMAT_NAMES,
     OPTIONAL_COLUMNS,
     REQUIRED_COLUMNS,
@@ -346,14 +347,15 @@ def table_from_arrow(
     }
     if "bend_level" in arrow.column_names:
         level = col("bend_level", np.float64)
-        # A fit multiplies each row's model by 1 + b · level: one NaN in a good row would make
-        # every walker's likelihood NaN, a failed fit with no word of why.
-        bad_level = (flags == 0) & ~(np.isfinite(level) & (level >= 0))
+        # A fit multiplies the model of every row it uses — measured, censored or kept despite
+        # a flag (FLAG_ROLES: all but the excluded) — by 1 + b · level: one NaN there would
+        # make every walker's likelihood NaN, a failed fit with no word of why.
+        bad_level = ((flags & EXCLUDING) == 0) & ~(np.isfinite(level) & (level >= 0))
         if bad_level.any():
             first = int(np.flatnonzero(bad_level)[0])
             raise SamplesError(
                 f"{path}: column 'bend_level' holds {level[first]:g} in row {first} "
-                f"({int(bad_level.sum())} good row(s) without a finite level ≥ 0); it is the "
+                f"({int(bad_level.sum())} row(s) a fit uses without a finite level ≥ 0); it is the "
                 "fraction of the camera's clip a sample was read at (docs/formats.md): drop the "
                 "column or those rows"
             )

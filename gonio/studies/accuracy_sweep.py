@@ -394,10 +394,7 @@ def _realistic(spec: RunSpec, seed: int, cfg: StudyConfig, rig, plan: PlanConfig
     world = _scene(
         load_scene(config_dir() / "scenes" / f"{REALISTIC_SCENE}.toml"), spec.material, seed
     )
-    # A power of 2 points (a Sobol' sample's size); `--rigs` not one of them takes the first
-    # rigs of the next (a prefix of the sequence, still spread over the whole budget).
-    points = 1 << max(cfg.realistic_seeds - 1, 0).bit_length()
-    z = sobol_normal(points, budget.N_DRAWS, REALISTIC_DRAWS_SEED)[seed]
+    z = sobol_normal(cfg.realistic_seeds, budget.N_DRAWS, REALISTIC_DRAWS_SEED)[seed]
     # Uncorrected, the realistic sensor's PRNU alone puts χ²/dof at 1.37 (tests/
     # test_coverage_realistic.py): a lab records darks and a flat field.
     phases = CalibrationPhasesConfig(dark=DarkPhaseConfig(count=8), flat=FlatPhaseConfig(count=16))

@@ -75,8 +75,9 @@ def test_dictionary_encoded_channels_still_load(tmp_path) -> None:
 @pytest.mark.parametrize("bad", [np.nan, -0.5])
 def test_a_bend_level_the_fit_cannot_use_is_refused_in_one_line(tmp_path, bad) -> None:
     """The fit multiplies each row's model by 1 + b · bend_level (fitting.nuisance): a NaN in a
-    good row would turn every likelihood into NaN, a failed fit with no word of why. A flagged
-    row may hold anything."""
+    row the fit uses would turn every likelihood into NaN, a failed fit with no word of why:
+    measured rows and rows whose flag keeps or censors them alike. An excluded row may hold
+    anything."""
     arrow = _valid(tmp_path / "s.parquet")
     level = pa.array([0.2, bad, 0.4, 0.5], pa.float32())
     pq.write_table(arrow.append_column("bend_level", level), tmp_path / "bad.parquet")
@@ -87,3 +88,12 @@ def test_a_bend_level_the_fit_cannot_use_is_refused_in_one_line(tmp_path, bad) -
     )
     pq.write_table(flagged.append_column("bend_level", level), tmp_path / "ok.parquet")
     assert read_samples(tmp_path / "ok.parquet").extra["bend_level"][2] == pytest.approx(0.4)
+    for kept_or_censored in (16, 1):  # negative (kept as measured), saturated (censored)
+        marked = arrow.set_column(
+            arrow.schema.get_field_index("flags"),
+            "flags",
+            pa.array([0, kept_or_censored, 0, 0], pa.int32()),
+        )
+        pq.write_table(marked.append_column("bend_level", level), tmp_path / "marked.parquet")
+        with pytest.raises(SamplesError, match="column 'bend_level' holds .* in row 1"):
+            read_samples(tmp_path / "marked.parquet")

@@ -14,6 +14,7 @@ from __future__ import annotations
 import ast
 import importlib
 import pkgutil
+from pathlib import Path
 
 import numba.core.registry
 import pytest
@@ -67,7 +68,7 @@ def test_kernel_module_imports_the_compile_policy_itself(module: str) -> None:
     compiled twice over (measured: a suite run left 280 builds in the cache, 178 under one key and
     102 under the other) and ran with the narrower vectors in those processes."""
     mod = importlib.import_module(module)
-    tree = ast.parse(open(mod.__file__, encoding="utf-8").read())
+    tree = ast.parse(Path(mod.__file__).read_text(encoding="utf-8"))
     imported = {
         node.module if isinstance(node, ast.ImportFrom) else alias.name
         for node in ast.walk(tree)
