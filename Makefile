@@ -15,12 +15,23 @@ STAMP := $(VENV)/.installed
 
 setup: $(STAMP) llvm aravis chromium
 
+# $(call install,SPEC): the project (or an extra of it) into the venv. With uv when pip could
+# fetch it — it installs the ~80 wheels in ~5 s where pip takes ~30 s (measured on a fresh clone,
+# both from warm caches; docs/performance.md), the largest part of `make test`'s setup — and with
+# pip where uv is absent or fails (uv reads PyPI only, not a machine's pip config: a machine whose
+# packages come only from its own index gets pip). Both resolve pyproject.toml alone: the same
+# versions (pip freeze of the two venvs, compared). The pip config on some machines lists absent
+# local indexes; only those warnings are hidden.
+pip = set -o pipefail; $(BIN)/python -m pip install --quiet $(1) 2>&1 | { grep -v "^WARNING: Location" || true; }
+install = { test -x $(BIN)/uv && $(BIN)/uv pip install --quiet --python $(BIN)/python $(1); } || \
+  { $(call pip,$(1)); }
+
 # Reinstall only when the dependency list changes.
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
-	@# The pip config on some machines lists absent local indexes; hide only those warnings.
-	set -o pipefail; $(BIN)/python -m pip install --quiet --upgrade pip 2>&1 | { grep -v "^WARNING: Location" || true; }
-	set -o pipefail; $(BIN)/python -m pip install --quiet -e '.[dev]' 2>&1 | { grep -v "^WARNING: Location" || true; }
+	$(call pip,--upgrade pip)
+	@$(call pip,uv) || echo "note: could not install uv; installing with pip (slower)"
+	$(call install,-e '.[dev]')
 	@touch $(STAMP)
 
 # Mitsuba's llvm_ad_rgb variant needs libLLVM >= 17 (15/16 abort the process). Debian 12 ships
@@ -62,7 +73,7 @@ aravis-debs:
 	  echo "note: Aravis 0.8 not found and not root; the Aravis tests will skip"; \
 	fi
 
-# PyGObject in the venv (pip builds it against the system's girepository, ~1 min, once).
+# PyGObject in the venv (built against the system's girepository, ~1 min, once; cached after).
 aravis: $(STAMP) aravis-debs
 	@if ! ($(have_aravis_debs)); then \
 	  echo "Debian packages missing: $(ARAVIS_DEBS) (make setup installs them as root)" > $(ARAVIS_MARK); \
@@ -70,12 +81,11 @@ aravis: $(STAMP) aravis-debs
 	  rm -f $(ARAVIS_MARK); \
 	else \
 	  echo "building PyGObject for the Aravis backend (about a minute, once)"; \
-	  if set -o pipefail; $(BIN)/python -m pip install --quiet -e '.[aravis]' 2>&1 | \
-	      { grep -v "^WARNING: Location" || true; }; then \
+	  if $(call install,-e '.[aravis]'); then \
 	    rm -f $(ARAVIS_MARK); \
 	  else \
-	    echo "pip could not build PyGObject (gonio[aravis])" > $(ARAVIS_MARK); \
-	    echo "note: pip could not build PyGObject; the Aravis tests will skip"; \
+	    echo "could not build PyGObject (gonio[aravis])" > $(ARAVIS_MARK); \
+	    echo "note: could not build PyGObject; the Aravis tests will skip"; \
 	  fi; \
 	fi
 
@@ -119,8 +129,7 @@ test: setup
 # The peers (JAX, NumPyro) are an optional extra: without them the peer benchmarks say so in
 # one line and the rest run.
 bench: setup
-	@set -o pipefail; $(BIN)/python -m pip install --quiet -e '.[bench]' 2>&1 | \
-	  { grep -v "^WARNING: Location" || true; } || \
+	@$(call install,-e '.[bench]') || \
 	  echo "note: could not install the bench extra (jax, numpyro); peer comparisons are skipped"
 	$(BIN)/python benchmarks/run_all.py $(BENCH)
 

@@ -95,18 +95,45 @@ def pytest_configure(config: pytest.Config) -> None:
         "heavy(seconds): a module that takes about this long on one worker; the longest run "
         "first (pytest_collection_modifyitems)",
     )
+    config.addinivalue_line(
+        "markers",
+        "waits: a module that spends most of its wall time waiting on emulated hardware's real "
+        "time (a camera's frame period, a serial link, a timeout); it starts beside the longest "
+        "modules, whose repeat pools then have the cores (pytest_collection_modifyitems)",
+    )
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The longest test files first, longest first; the rest in their usual order. The suite
-    runs a file at a time on each of two workers (make test: --dist loadfile, with xdist's own
-    reordering by number of tests switched off), taking files in this order: started last, a
-    5-minute file kept one worker busy long after the other had run out of work (measured: the
-    workers ended 340 s apart). Longest first, the short files fill in around the long ones."""
+    """The longest test files first, longest first, each of the files that mostly wait right
+    after one of them; the rest in their usual order. The suite runs a file at a time on each of
+    two workers (make test: --dist loadfile, with xdist's own reordering by number of tests
+    switched off), taking files in this order: started last, a 5-minute file kept one worker
+    busy long after the other had run out of work (measured: the workers ended 340 s apart).
+    Longest first, the short files fill in around the long ones. A waiting file beside another
+    waiting file left both cores ~70 % idle for a minute (the Aravis and pretend-lab files,
+    measured with a per-second CPU trace of a fresh clone's make test); beside a file whose
+    repeats run in a pool of two processes (tests/support/repeats.py), the pool takes the core
+    the waiting file leaves."""
 
     def cost(item: pytest.Item) -> float:
         mark = item.get_closest_marker("heavy")
         return float(mark.args[0]) if mark is not None else 0.0
 
+    def waits(item: pytest.Item) -> bool:
+        return item.get_closest_marker("waits") is not None
+
+    first: dict[str, pytest.Item] = {}  # file → its first item, in collection order
+    for item in items:
+        first.setdefault(item.nodeid.split("::")[0], item)
+    files = sorted(first, key=lambda f: -cost(first[f]))  # stable: the rest keep their order
+    waiting = [f for f in files if waits(first[f])]
+    working = [f for f in files if not waits(first[f])]
+    rank: dict[str, int] = {}
+    for i, f in enumerate(working):
+        rank[f] = len(rank)
+        if i < len(waiting):
+            rank[waiting[i]] = len(rank)
+    for f in waiting[len(working) :]:
+        rank[f] = len(rank)
     order = {id(item): i for i, item in enumerate(items)}
-    items.sort(key=lambda item: (-cost(item), order[id(item)]))
+    items.sort(key=lambda item: (rank[item.nodeid.split("::")[0]], order[id(item)]))

@@ -33,8 +33,8 @@ from calibration.decode import decode_frame
 from tests.support.aravis import FakeCamera, expected_mono, fake_serial, require_aravis
 from tests.support.pretend_lab import DEMO_SCENE, LAB_RIG, REPO, pretend_lab
 
-# heavy: scheduled first (tests/conftest.py: the longest files start first).
-pytestmark = [pytest.mark.timeout(900), pytest.mark.heavy(62)]
+# heavy and waits: scheduled first, beside a repeat pool (tests/conftest.py).
+pytestmark = [pytest.mark.timeout(900), pytest.mark.heavy(62), pytest.mark.waits]
 
 
 @pytest.fixture(autouse=True)

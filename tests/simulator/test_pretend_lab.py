@@ -24,8 +24,8 @@ import pytest
 from acquisition.store import RunStore
 from tests.support.pretend_lab import DEMO_SCENE, REPO, gonio, pretend_lab, write_lab_files
 
-# heavy: scheduled first (tests/conftest.py: the longest files start first).
-pytestmark = [pytest.mark.timeout(900), pytest.mark.heavy(57)]
+# heavy and waits: scheduled first, beside a repeat pool (tests/conftest.py).
+pytestmark = [pytest.mark.timeout(900), pytest.mark.heavy(57), pytest.mark.waits]
 
 
 def _done(run: Path) -> tuple[int, int]:

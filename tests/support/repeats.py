@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
@@ -11,18 +12,22 @@ from typing import Any
 __all__ = ["repeat_pool", "repeat_map"]
 
 
-def _one_numba_thread() -> None:
+def _repeat_process() -> None:
     """Each repeat process runs its kernels on one thread: the pool's two processes, and the
     suite's other worker beside them, already fill the two cores, and a parallel kernel's
-    threads only wait for each other there (numba's spin-waits: ~10 % more CPU, measured)."""
+    threads only wait for each other there (numba's spin-waits: ~10 % more CPU, measured). And
+    it runs at a lower priority (nice 10): the repeats are batch work, while the other worker
+    may be running a file that waits on emulated hardware's real time (tests/conftest.py starts
+    those beside the pools), whose frame periods and timeouts should not queue behind them."""
     import numba
 
     numba.set_num_threads(1)
+    os.nice(10)
 
 
 def repeat_pool(workers: int = 2) -> ProcessPoolExecutor:
     return ProcessPoolExecutor(
-        max_workers=workers, mp_context=get_context("spawn"), initializer=_one_numba_thread
+        max_workers=workers, mp_context=get_context("spawn"), initializer=_repeat_process
     )
 
 
