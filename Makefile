@@ -16,7 +16,7 @@ STAMP := $(VENV)/.installed
 setup: $(STAMP) llvm aravis chromium
 
 # $(call install,SPEC): the project (or an extra of it) into the venv. With uv when pip could
-# fetch it — it installs the ~80 wheels in ~5 s where pip takes ~30 s (measured on a fresh clone,
+# fetch it — it installs the ~75 packages in ~5 s where pip takes ~30 s (measured on a fresh clone,
 # both from warm caches; docs/performance.md), the largest part of `make test`'s setup — and with
 # pip where uv is absent or fails (uv reads PyPI only, not a machine's pip config: a machine whose
 # packages come only from its own index gets pip). Both resolve pyproject.toml alone: the same
@@ -31,7 +31,8 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(call pip,--upgrade pip)
 	@$(call pip,uv) || echo "note: could not install uv; installing with pip (slower)"
-	$(call install,-e '.[dev]')
+	@echo "installing gonio and its dependencies into $(VENV)"
+	@$(call install,-e '.[dev]')
 	@touch $(STAMP)
 
 # Mitsuba's llvm_ad_rgb variant needs libLLVM >= 17 (15/16 abort the process). Debian 12 ships
