@@ -20,6 +20,12 @@ differences are meaningful.
   √(n Var_j (elpd_A,j − elpd_B,j)) (Vehtari et al. 2017, eq. 24). Units: nats (ln-density,
   f in sr⁻¹).
 * AIC / BIC are copied from the fit JSON goodness (at the MAP, see :mod:`fitting.fit`).
+
+Only a reliable score is ranked: a model whose PSIS-LOO has any k̂ > 0.7 (its elpd is then not
+an estimate of the out-of-sample fit; Vehtari et al. 2017 §2.1, 2024) or whose sampler failed
+its convergence verdict (the draws are not the posterior) is listed below the ranked ones,
+unranked, with the reason. A difference of less than 2 SE between two ranked models does not
+separate them (:func:`margin_words`).
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from brdfdata.coverage import coverage_report
 from plumbing.atomic import atomic_write_bytes
 from plumbing.inputs import MiB, read_input_text
 
@@ -48,15 +55,18 @@ __all__ = [
     "ModelScore",
     "score_fit",
     "rank",
+    "margin_words",
     "write_compare",
     "read_compare",
     "Candidate",
+    "Skipped",
     "candidates",
+    "skipped_models",
     "restrict",
     "run_comparison",
 ]
 
-COMPARE_SCHEMA_VERSION = 1
+COMPARE_SCHEMA_VERSION = 2  # 2: unranked rows (rank null, why_unranked), "skipped"
 #: Pareto k̂ above which a PSIS-LOO term is unreliable (Vehtari et al. 2017/2024).
 KHAT_BAD = 0.7
 
@@ -286,7 +296,8 @@ class ModelScore:
     bic: float
     d_elpd: float = 0.0
     d_se: float = 0.0
-    rank: int = 0
+    rank: int | None = None  # None: not ranked (why_unranked says why)
+    why_unranked: str = ""
     warnings: list[str] = field(default_factory=list)
     pointwise: np.ndarray | None = field(default=None, repr=False)
 
@@ -301,15 +312,24 @@ class ModelScore:
 def score_fit(
     result, label: str | None = None, *, max_draws: int = 500, seed: int = 0
 ) -> ModelScore:
-    """WAIC, PSIS-LOO, AIC, BIC of a fresh :class:`fitting.result.FitResult` (with extras)."""
+    """WAIC, PSIS-LOO, AIC, BIC of a fresh :class:`fitting.result.FitResult` (with extras),
+    and why it cannot be ranked where it cannot (see the module docstring)."""
     lik = result.extras["likelihood"]
     space = result.extras["space"]
     ll = pointwise_log_likelihood(lik, posterior_draws(result, max_draws, seed))
     w = waic(ll)
     lo = psis_loo(ll)
-    warnings = []
+    n = int(ll.shape[1])
+    why = []
     if lo["n_khat_bad"]:
-        warnings.append(f"{lo['n_khat_bad']} sample(s) with Pareto k̂ > {KHAT_BAD}")
+        why.append(
+            f"its PSIS-LOO is unreliable: Pareto k̂ > {KHAT_BAD} at {lo['n_khat_bad']} of {n} "
+            f"samples (max {lo['khat_max']:.2f}, p_loo {lo['p']:.3g})"
+        )
+    conv = next((v for v in result.verdicts or [] if v.get("name") == "convergence"), None)
+    if conv is not None and conv.get("status") == "fail":
+        why.append(f"its sampler did not converge ({conv.get('reason', '')})")
+    warnings = []
     if result.diagnostics.get("stop_reason") == "no_mcmc":
         warnings.append("Laplace draws (no MCMC)")
     shared = [s.name for s in space.specs if s.name == s.base and s.base != "discrepancy"]
@@ -319,7 +339,7 @@ def score_fit(
         options=dict(result.options),
         shared=shared,
         k=int(space.ndim),
-        n=int(ll.shape[1]),
+        n=n,
         elpd_loo=lo["elpd"],
         se_loo=lo["se"],
         p_loo=lo["p"],
@@ -332,16 +352,26 @@ def score_fit(
         waic=w["waic"],
         aic=float(result.goodness.get("aic", float("nan"))),
         bic=float(result.goodness.get("bic", float("nan"))),
+        why_unranked="; ".join(why),
         warnings=warnings,
         pointwise=lo["pointwise"],
     )
 
 
 def rank(scores: Sequence[ModelScore]) -> list[ModelScore]:
-    """Sort by elpd_loo (best first) and fill ΔELPD = elpd − elpd_best ≤ 0 with its SE."""
-    ordered = sorted(scores, key=lambda s: -s.elpd_loo if math.isfinite(s.elpd_loo) else math.inf)
+    """The reliable scores sorted by elpd_loo (best first) with rank 1, 2, … and ΔELPD =
+    elpd − elpd_best ≤ 0 with its SE; then the unreliable ones (``why_unranked`` set), rank
+    None and no ΔELPD, in the same order."""
+
+    def by_elpd(group: list[ModelScore]) -> list[ModelScore]:
+        return sorted(group, key=lambda s: -s.elpd_loo if math.isfinite(s.elpd_loo) else math.inf)
+
+    ordered = by_elpd([s for s in scores if not s.why_unranked])
+    unranked = by_elpd([s for s in scores if s.why_unranked])
+    for s in unranked:
+        s.rank, s.d_elpd, s.d_se = None, float("nan"), float("nan")
     if not ordered:
-        return []
+        return unranked
     best = ordered[0]
     for i, s in enumerate(ordered):
         s.rank = i + 1
@@ -356,32 +386,54 @@ def rank(scores: Sequence[ModelScore]) -> list[ModelScore]:
             s.d_se = _se(s.pointwise - best.pointwise)
         else:
             s.d_se = float("nan")
-    return ordered
+    return ordered + unranked
 
 
-def write_compare(path: str | os.PathLike, scores: Sequence[ModelScore]) -> Path:
-    """compare.json: {"schema_version", "criterion": "elpd_loo", "models": [row, …]} best first."""
+def margin_words(best: ModelScore, other: ModelScore) -> str:
+    """How ``other`` (ranked below ``best``) compares, in words: separated when its ΔELPD is
+    more than 2 SE of the pointwise difference below the best, else not (a normal
+    approximation to the difference: within 2 SE is no clear preference; Vehtari et al.
+    2017 §5, Sivula et al. 2022)."""
+    d, se = other.d_elpd, other.d_se
+    if not (math.isfinite(d) and math.isfinite(se)):
+        return f"{other.label}: no SE of its difference from {best.label}"
+    if -d > 2 * se:
+        return f"{best.label} predicts better than {other.label} by {-d:.3g} ± {se:.2g} nats"
+    return (
+        f"{best.label} and {other.label} are not separated: ΔELPD {d:.3g} ± {se:.2g} nats is "
+        "within 2 SE"
+    )
+
+
+def write_compare(
+    path: str | os.PathLike, scores: Sequence[ModelScore], skipped: Sequence[Skipped] = ()
+) -> Path:
+    """compare.json: {"schema_version", "criterion": "elpd_loo", "models": [row, …] ranked
+    best first then unranked (rank null, why_unranked), "skipped": [{model, reason}, …]}."""
     path = Path(path)
     doc = {
         "schema_version": COMPARE_SCHEMA_VERSION,
         "criterion": "elpd_loo",
         "models": [s.to_dict() for s in scores],
+        "skipped": [asdict(s) for s in skipped],
     }
     data = (json.dumps(doc, indent=2, allow_nan=False) + "\n").encode()
     return atomic_write_bytes(path, data, overwrite=True)
 
 
-def read_compare(path: str | os.PathLike) -> list[dict]:
-    """Rows of a compare.json (raises ValueError with one line if it is not one)."""
+def read_compare(path: str | os.PathLike) -> tuple[list[dict], list[Skipped]]:
+    """(rows, models left out) of a compare.json (raises ValueError with one line if it is
+    not one; a schema-1 file has no "skipped")."""
     path = Path(path)
     try:
         doc = json.loads(read_input_text(path, "compare.json", 256 * MiB))
         rows = doc["models"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+        skipped = [Skipped(str(r["model"]), str(r["reason"])) for r in doc.get("skipped", [])]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"{path}: not a compare.json ({type(exc).__name__})") from None
     if not isinstance(rows, list):
         raise ValueError(f"{path}: not a compare.json")
-    return rows
+    return rows, skipped
 
 
 @dataclass(frozen=True)
@@ -403,35 +455,91 @@ def _shared_for(model, shared: Sequence[str]) -> tuple[str, ...]:
     return tuple(out)
 
 
+@dataclass(frozen=True)
+class Skipped:
+    """A model ``--model all`` does not fit, and why (listed by the command and compare.json)."""
+
+    model: str
+    reason: str
+
+
+def _selection(
+    model: str, options: Mapping | None, directions
+) -> tuple[list[tuple[str, dict]], list[Skipped]]:
+    """([(name, options)], skipped) that a --model value names: one name (options validated
+    by the registry), names separated by commas, or "all" — every registered model and named
+    variant, each with the ``options`` that apply to it (:func:`fitting.models.
+    applicable_options`), except a variant that the options make the same model as one
+    already chosen and, when ``directions`` (wi, wo) are given, an anisotropic model on
+    samples measured in too few orientations of the sample to determine (α_x, α_y, φ₀)."""
+    from fitting import models
+
+    if model != "all" and "," not in model:
+        return [(model, {str(k): str(v) for k, v in (options or {}).items()})], []
+    if model == "all":
+        names = models.names()
+    else:
+        names = [models.resolve(n.strip()) for n in model.split(",") if n.strip()]
+    orientations = None
+    if directions is not None and any("orientations" in models.entry(n).needs for n in names):
+        orientations = coverage_report(("orientations",), *directions).regions[0]
+    chosen, skipped, seen = [], [], {}
+    for name in dict.fromkeys(names):
+        opts = models.applicable_options(name, options)
+        e = models.entry(name)
+        same = (e.base or e.name, tuple(sorted(models.full_options(name, opts).items())))
+        if same in seen:
+            skipped.append(Skipped(name, f"the same model as {seen[same]} with these options"))
+        elif (
+            orientations is not None and orientations.status != "ok" and ("orientations" in e.needs)
+        ):
+            skipped.append(
+                Skipped(
+                    name,
+                    f"anisotropic, but the samples reach {orientations.count} of the "
+                    f"{orientations.needed} sample orientations (bins of the half vector's "
+                    "azimuth) it needs to tell α_x, α_y and φ₀ apart; fit it by name to try",
+                )
+            )
+        else:
+            seen[same] = name
+            chosen.append((name, opts))
+    return chosen, skipped
+
+
+def skipped_models(model: str, options: Mapping | None = None, directions=None) -> list[Skipped]:
+    """The models a --model value names that :func:`candidates` leaves out, with the reason."""
+    return _selection(model, options, directions)[1]
+
+
 def candidates(
     model: str,
     options: Mapping | None = None,
     shared: Sequence[str] = ("m",),
     *,
     compare_shared: bool = False,
+    directions=None,
 ) -> list[Candidate]:
-    """The fits a ``gonio fit --model`` call asks for. ``model="all"``: the registry's group
-    "all" (:func:`fitting.models.group`; each model takes the ``options`` that apply to it and
-    have an allowed value, :func:`fitting.models.applicable_options`; shared names a model
-    lacks are dropped for it). A single model may be a registered name, a named variant or an
-    alias; its options are validated by the registry (ValueError naming the allowed ones).
-    ``m`` stands for the Phong exponent n where a model has no m; any other unknown shared
-    name is an error for a single model. With ``compare_shared`` each model whose shared set
-    is non-empty is fitted again with every parameter per channel (label suffix
-    ``-per-channel``)."""
+    """The fits a ``gonio fit --model`` call asks for: one model (a registered name, a named
+    variant or an alias, its options validated by the registry: ValueError naming the allowed
+    ones), several separated by commas, or "all" (every registered one the samples can
+    determine; :func:`skipped_models` lists the others with the reason). With several models
+    each takes the ``options`` that apply to it and have an allowed value, and shared names a
+    model lacks are dropped for it. ``m`` stands for the Phong exponent n where a model has
+    no m; any other unknown shared name is an error for a single model. With
+    ``compare_shared`` each model whose shared set is non-empty is fitted again with every
+    parameter per channel (label suffix ``-per-channel``). ``directions`` (wi, wo): the
+    samples' directions, which decide whether an anisotropic model can be determined."""
     from fitting import models
 
-    names = models.group("all") if model == "all" else [model]
+    chosen, _ = _selection(model, options, directions)
+    single = len(chosen) == 1 and model != "all" and "," not in model
     out = []
-    for name in names:
-        if model == "all":
-            opts = models.applicable_options(name, options)
-        else:
-            opts = {str(k): str(v) for k, v in (options or {}).items()}
+    for name, opts in chosen:
         m = models.get(name, **opts)
         sh = _shared_for(m, shared)
         unknown = set(shared) - set(m.parameter_names) - {"m"}
-        if model != "all" and unknown:
+        if single and unknown:
             raise ValueError(
                 f"--shared {', '.join(sorted(unknown))}: not a parameter of {name} "
                 f"(parameters: {', '.join(m.parameter_names)})"
@@ -482,15 +590,16 @@ def run_comparison(
     base,
     *,
     out_dir: str | os.PathLike,
-    max_draws: int = 500,
     on_fit=None,
     progress: bool = False,
     setups: Mapping | None = None,
+    skipped: Sequence[Skipped] = (),
 ) -> tuple[list[ModelScore], dict]:
     """Fit every candidate with its :func:`candidate_options` of the `base` FitOptions, write
     fit-<label>.json/.h5 in ``out_dir``, score and rank them, write ``out_dir/compare.json``.
     ``on_fit(candidate, result)`` is called after each fit; ``setups`` (label →
-    fitting.fit.FitSetup) are the candidates' setups where the caller has checked them.
+    fitting.fit.FitSetup) are the candidates' setups where the caller has checked them;
+    ``skipped`` (:func:`skipped_models`) are listed in compare.json.
     Returns (ranked scores, {label: FitResult})."""
     from fitting.fit import fit_samples
 
@@ -502,9 +611,9 @@ def run_comparison(
         sub = out_dir if c.label == c.model else out_dir / c.label
         res = fit_samples(table, opts, out_dir=sub, progress=progress, setup=setups.get(c.label))
         results[c.label] = res
-        scores.append(score_fit(res, c.label, max_draws=max_draws, seed=base.seed))
+        scores.append(score_fit(res, c.label, seed=base.seed))
         if on_fit is not None:
             on_fit(c, res)
     ranked = rank(scores)
-    write_compare(out_dir / "compare.json", ranked)
+    write_compare(out_dir / "compare.json", ranked, skipped)
     return ranked, results

@@ -56,7 +56,6 @@ __all__ = [
     "get",
     "names",
     "aliases",
-    "group",
     "applicable_options",
     "full_options",
     "describe",
@@ -107,11 +106,6 @@ def names(*, variants: bool = True) -> list[str]:
 def aliases() -> dict[str, str]:
     """alias → registered name."""
     return dict(_ALIASES)
-
-
-def group(label: str) -> list[str]:
-    """The names in a named group, e.g. ``group("all")``."""
-    return [n for n, e in _ENTRIES.items() if label in e.groups]
 
 
 def _choices(e: ModelEntry) -> str:

@@ -68,7 +68,6 @@ def _established() -> Iterator[ModelEntry]:
             summary="f = kd/π",
             reference="Lambert 1760; the seed lecture's diffuse BRDF",
             checks=(({}, ({"kd": 1.0},)),),
-            groups=frozenset({"all"}),
         )
     )
     refs = {
@@ -86,7 +85,6 @@ def _established() -> Iterator[ModelEntry]:
                 reference=ref,
                 needs=("specular",),
                 checks=_lobe_cases(ns.get(name, (1.0, 10.0, 1e3))),
-                groups=frozenset({"all"}),
             )
         )
     yield (
@@ -99,7 +97,6 @@ def _established() -> Iterator[ModelEntry]:
             reference="Torrance & Sparrow 1967; Cook & Torrance 1982; Walter et al. 2007",
             needs=("specular", "off-specular"),
             checks=_ts_cases(),
-            groups=frozenset({"all"}),
         )
     )
 

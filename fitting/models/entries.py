@@ -48,8 +48,7 @@ class ModelEntry:
     ``base`` (the entry it specialises) and ``fixed`` (the options it fixes); its ``options``
     are the base's remaining ones. ``needs`` names the regions of the hemisphere the model's
     parameters are determined by (:mod:`brdfdata.coverage`). ``checks`` are (options, parameter
-    sets) on which ``gonio models --check`` measures the properties. ``groups`` are named sets
-    ("all": what ``gonio fit --model all`` fits).
+    sets) on which ``gonio models --check`` measures the properties.
     """
 
     name: str
@@ -62,7 +61,6 @@ class ModelEntry:
     fixed: Mapping[str, str] = field(default_factory=dict)
     needs: tuple[str, ...] = ()
     checks: tuple[tuple[Mapping[str, str], tuple[Mapping[str, float], ...]], ...] = ()
-    groups: frozenset[str] = frozenset()
 
     def option(self, name: str) -> OptionSpec | None:
         return next((o for o in self.options if o.name == name), None)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -11,6 +12,14 @@ from rich.table import Table
 from gonio.cli._app import ANALYSIS, DATA, app, kv_pairs, out
 from gonio.plain_text import plain
 
+_ModelOption = Annotated[
+    str,
+    typer.Option(
+        "--model",
+        help="Model (see `gonio models`), several by commas, or all; several are ranked where "
+        "their PSIS-LOO is reliable (all lists any model it leaves out, and why).",
+    ),
+]
 _BinOption = Annotated[
     float | None,
     typer.Option(
@@ -39,12 +48,7 @@ def fit(
             "docs/formats.md); other formats: `gonio import`."
         ),
     ],
-    model: Annotated[
-        str,
-        typer.Option(
-            "--model", help='Model name (see `gonio models`), or "all" to fit and rank every one.'
-        ),
-    ] = "torrance-sparrow",
+    model: _ModelOption = "torrance-sparrow",
     option: Annotated[list[str], typer.Option("--option", help="Model option KEY=VALUE.")] = [],  # noqa: B006
     fix: Annotated[list[str], typer.Option("--fix", help="Hold NAME=VALUE fixed.")] = [],  # noqa: B006
     shared: Annotated[str, typer.Option(help="Comma list of parameters shared by channels.")] = "m",
@@ -99,7 +103,8 @@ def fit(
     no_widen: _NoWidenOption = False,
 ) -> None:
     """Fit a model to SAMPLES: writes fit-NAME.json, fit-NAME.h5 and material-NAME.xml
-    (Mitsuba 3); with --model all or --compare-shared also compare.json (ranked by PSIS-LOO).
+    (Mitsuba 3); with several models or --compare-shared also compare.json (ranked by
+    PSIS-LOO where it is reliable; the others listed with the reason).
     The samples contract (columns, units, flags, metadata) is in docs/formats.md."""
     from gonio.errors import UserError
 
@@ -108,8 +113,8 @@ def fit(
     if censor:
         out.print("note: --censor is the default now (it does nothing); --drop-flagged excludes")
     table = _read_for_fit(samples, bin_deg, merge_duplicates)
-    model, fixed, prior_cfg, cands = _checked_fit_args(
-        model, fix, priors, (option, shared, compare_shared), (likelihood, walkers, steps)
+    model, fixed, prior_cfg, cands, skipped = _checked_fit_args(
+        table, model, fix, priors, (option, shared, compare_shared), (likelihood, walkers, steps)
     )
     chans = [c.strip() for c in channels.split(",")] if channels else None
     from fitting.fit import FitOptions
@@ -130,7 +135,7 @@ def fit(
     setups = _check_setups(table, cands, base, compare_shared, priors)
     _show_flag_counts(table, chans, drop_flagged)
     dest = Path(out_dir or samples.parent)
-    _run_fits(table, (base, setups), cands, (compare_shared, accept_poor_fit), dest)
+    _run_fits(table, (base, setups, skipped), cands, (compare_shared, accept_poor_fit), dest)
 
 
 def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):
@@ -154,13 +159,16 @@ def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):
 
 def _run_fits(table, fitting_plan, cands, flags, dest: Path) -> None:
     """One fit (or a ranked comparison), each shown with its verdicts; exit 3 on a fail.
-    ``fitting_plan``: the base FitOptions and each candidate's checked setup."""
+    ``fitting_plan``: the base FitOptions, each candidate's checked setup and the models left
+    out (listed in compare.json)."""
     from fitting.compare import candidate_options, run_comparison
     from fitting.fit import fit_samples
     from fitting.priors import PriorsError
     from gonio.errors import UserError
 
-    base, setups = fitting_plan
+    base, setups, skipped = fitting_plan
+    for s in skipped:
+        out.print(f"not fitted: {s.model}: {s.reason}", markup=False, soft_wrap=True)
     compare_shared, accept_poor_fit = flags
     results = {}
 
@@ -177,13 +185,28 @@ def _run_fits(table, fitting_plan, cands, flags, dest: Path) -> None:
             verdict_exit(results[c.label].verdicts, accept_poor_fit)
             return
         ranked, _ = run_comparison(
-            table, cands, base, out_dir=dest, on_fit=show, progress=True, setups=setups
+            table,
+            cands,
+            base,
+            out_dir=dest,
+            on_fit=show,
+            progress=True,
+            setups=setups,
+            skipped=skipped,
         )
     except PriorsError as exc:
         raise UserError(str(exc).splitlines()[0]) from None
     _show_comparison(ranked, dest)
+    best = ranked[0] if ranked and ranked[0].rank == 1 else None
+    if best is None:  # no score is reliable: there is no best model to stand on
+        what = "no model could be ranked (each one's reason is above; compare.json lists them)"
+        if accept_poor_fit:
+            out.print(f"{what} — accepted (--accept-poor-fit)", soft_wrap=True)
+            return
+        out.print(f"{what} — rerun with --accept-poor-fit to accept", soft_wrap=True)
+        raise typer.Exit(code=3)
     # A comparison ranks poor models below good ones: only the best one's fails decide the exit.
-    verdict_exit(results[ranked[0].label].verdicts, accept_poor_fit, ranked[0].label)
+    verdict_exit(results[best.label].verdicts, accept_poor_fit, best.label)
 
 
 def _check_setups(table, cands, base, compare_shared: bool, priors_path) -> dict:
@@ -230,11 +253,11 @@ def _show_flag_counts(table, chans, drop_flagged: bool) -> None:
     out.print(f"flagged samples: {dark} DARK, {sat} SATURATED of {int(sel.sum())}; {fate}")
 
 
-def _checked_fit_args(model: str, fix, priors, cand_args, mcmc_args):
-    """(model, fixed values, priors, candidates) from the fit command's options, each mistake
-    one line (UserError)."""
+def _checked_fit_args(table, model: str, fix, priors, cand_args, mcmc_args):
+    """(model, fixed values, priors, candidates, models left out) from the fit command's
+    options for the samples ``table``, each mistake one line (UserError)."""
     from fitting import models
-    from fitting.compare import candidates
+    from fitting.compare import candidates, skipped_models
     from fitting.likelihood import LIKELIHOOD_KINDS
     from fitting.priors import PriorsError, load_priors
     from gonio.errors import UserError
@@ -242,10 +265,12 @@ def _checked_fit_args(model: str, fix, priors, cand_args, mcmc_args):
     option, shared, compare_shared = cand_args
     likelihood, walkers, steps = mcmc_args
     if model != "all":
-        try:
-            model = models.resolve(model)  # an alias (e.g. "ts") names its model
+        try:  # an alias (e.g. "ts") names its model
+            model = ",".join(models.resolve(n.strip()) for n in model.split(",") if n.strip())
         except models.UnknownModelError as exc:
             raise UserError(f"{exc}, all") from None
+        if not model:
+            raise UserError("--model: give a model name (see `gonio models`), or all")
     if likelihood not in LIKELIHOOD_KINDS:
         raise UserError(f"--likelihood {likelihood!r}: use one of {', '.join(LIKELIHOOD_KINDS)}")
     if walkers < 2 or steps < 1:
@@ -257,12 +282,14 @@ def _checked_fit_args(model: str, fix, priors, cand_args, mcmc_args):
     shared_names = tuple(x.strip() for x in shared.split(",") if x.strip())
     try:
         prior_cfg = load_priors(priors) if priors is not None else None
+        opts, directions = kv_pairs(option, "--option"), (table.wi, table.wo)
         cands = candidates(
-            model, kv_pairs(option, "--option"), shared_names, compare_shared=compare_shared
+            model, opts, shared_names, compare_shared=compare_shared, directions=directions
         )
+        skipped = skipped_models(model, opts, directions)
     except (PriorsError, TypeError, ValueError) as exc:
         raise UserError(str(exc).splitlines()[0]) from None
-    return model, fixed, prior_cfg, cands
+    return model, fixed, prior_cfg, cands, skipped
 
 
 def _show_fit(c, result, dest: Path) -> None:
@@ -322,13 +349,18 @@ def verdict_exit(verdicts, accept: bool, label: str | None = None) -> None:
 
 
 def _show_comparison(ranked, dest: Path) -> None:
-    """The model-comparison table (best first) and its notes."""
+    """The model-comparison table (ranked best first, then the unranked), the margin of each
+    ranked model over the best in words, and why each unranked one is not ranked."""
+    from fitting.compare import margin_words
 
     def num(x: float) -> str:
+        if not math.isfinite(x):
+            return "–"
         return f"{x:.0f}" if abs(x) >= 100 else f"{x:.1f}"
 
     t = Table(title=f"Model comparison, {ranked[0].n} samples (best first; elpd in nats)")
     for col in (
+        "rank",
         "model",
         "shared",
         "k",
@@ -343,21 +375,33 @@ def _show_comparison(ranked, dest: Path) -> None:
         t.add_column(col, justify="right", no_wrap=True)
     for r in ranked:
         t.add_row(
+            str(r.rank) if r.rank else "not ranked",
             r.label,
             ",".join(r.shared) or "–",
             str(r.k),
             f"{num(r.elpd_loo)} ± {num(r.se_loo)}",
             num(r.p_loo),
             num(r.waic),
-            f"{num(r.d_elpd)} ± {num(r.d_se)}",
+            f"{num(r.d_elpd)} ± {num(r.d_se)}" if r.rank else "–",
             f"{r.khat_max:.2f}",
             num(r.aic),
             num(r.bic),
         )
     out.print(t)  # a table when it fits, else its rows as records (gonio.cli._app)
+    best = ranked[0] if ranked[0].rank == 1 else None
+    for r in ranked:
+        if r.rank and r is not best:
+            out.print(margin_words(best, r), markup=False, soft_wrap=True)
+    for r in ranked:
+        if not r.rank:
+            out.print(f"not ranked: {r.label}: {r.why_unranked}", markup=False, soft_wrap=True)
+    notes: dict[str, list[str]] = {}  # one line per note, naming every model it is about
     for r in ranked:
         for w in r.warnings:
-            out.print(f"note: {r.label}: {w}")
+            notes.setdefault(w, []).append(r.label)
+    for w, labels in notes.items():
+        who = "every model" if len(labels) == len(ranked) > 1 else ", ".join(labels)
+        out.print(f"note: {who}: {w}", markup=False, soft_wrap=True)
     out.print(str(dest / "compare.json"))
 
 

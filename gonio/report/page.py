@@ -71,14 +71,15 @@ def _table(header: list[str], rows: list[list[Any]]) -> str:
 
 
 def _best_label(run_dir: Path) -> str | None:
-    """Label of the rank-1 model in compare.json, if there is one."""
+    """Label of the rank-1 model in compare.json, if one was ranked."""
     from fitting.compare import read_compare
 
     try:
-        rows = read_compare(run_dir / "compare.json")
-        return str(rows[0]["label"]) if rows and isinstance(rows[0], dict) else None
-    except (ValueError, KeyError):
+        rows, _ = read_compare(run_dir / "compare.json")
+    except ValueError:
         return None
+    best = [r for r in rows if isinstance(r, dict) and r.get("rank") == 1 and "label" in r]
+    return str(best[0]["label"]) if best else None
 
 
 def _compare_section(run_dir: Path) -> list[str]:
@@ -88,7 +89,7 @@ def _compare_section(run_dir: Path) -> list[str]:
     from fitting.compare import read_compare
 
     try:
-        rows = read_compare(path)
+        rows, skipped = read_compare(path)
     except ValueError as exc:
         return ["<h2>Model comparison</h2>", f"<p class='bad'>{html.escape(str(exc))}</p>"]
 
@@ -102,7 +103,7 @@ def _compare_section(run_dir: Path) -> list[str]:
             continue
         body.append(
             [
-                r.get("rank"),
+                r.get("rank") or "not ranked",
                 r.get("label"),
                 ", ".join(map(str, r.get("shared") or [])) or "–",
                 r.get("k"),
@@ -115,7 +116,7 @@ def _compare_section(run_dir: Path) -> list[str]:
                 fixed(r.get("khat_max"), 2),
                 fixed(r.get("aic")),
                 fixed(r.get("bic")),
-                "; ".join(map(str, r.get("warnings") or [])),
+                "; ".join(str(w) for w in [r.get("why_unranked"), *(r.get("warnings") or [])] if w),
             ]
         )
     return [
@@ -123,7 +124,8 @@ def _compare_section(run_dir: Path) -> list[str]:
         "<p class='note'>Ranked by PSIS-LOO expected log predictive density (elpd, nats; "
         "higher is better). ΔELPD is relative to the best model, with the SE of the pointwise "
         "difference; |ΔELPD| below ~2 SE is no clear preference. k̂ > 0.7: that sample's LOO "
-        "estimate is unreliable. AIC/BIC at the MAP (lower is better).</p>",
+        "estimate is unreliable, and a model with any such sample, or whose sampler did not "
+        "converge, is not ranked (its notes say why). AIC/BIC at the MAP (lower is better).</p>",
         _table(
             [
                 "rank",
@@ -142,6 +144,15 @@ def _compare_section(run_dir: Path) -> list[str]:
                 "notes",
             ],
             body,
+        ),
+        *(
+            [
+                "<p>Not fitted: "
+                + "; ".join(html.escape(f"{k.model}: {k.reason}") for k in skipped)
+                + ".</p>"
+            ]
+            if skipped
+            else []
         ),
     ]
 

@@ -18,7 +18,16 @@ from scipy import stats
 
 from brdfdata.samples import Flags, SampleTable
 from fitting import models
-from fitting.compare import ModelScore, gpd_fit, psis_loo, psis_smooth, rank, waic
+from fitting.compare import (
+    ModelScore,
+    gpd_fit,
+    margin_words,
+    psis_loo,
+    psis_smooth,
+    rank,
+    read_compare,
+    waic,
+)
 from fitting.likelihood import Likelihood
 from fitting.priors import ParameterSpace
 
@@ -141,6 +150,30 @@ def test_rank_orders_by_elpd_and_gives_the_se_of_the_difference() -> None:
     assert ranked[0].d_elpd == 0.0
 
 
+def test_an_unreliable_score_is_listed_unranked_and_margins_are_said_in_words() -> None:
+    rng = np.random.default_rng(1)
+    a = rng.normal(-1.0, 0.3, 50)
+    jitter = rng.normal(0.0, 0.05, 50)
+    jitter -= jitter.mean()
+    close = a - 0.002 - jitter  # 0.1 nats worse in all, SE(Δ) = √50 · 0.05 ≈ 0.35: within 2 SE
+    far = a - 0.5 - jitter  # 25 nats worse, the same SE: separated
+    bad = _score("bad", a + 10.0)  # the highest elpd, but its PSIS-LOO is unreliable
+    bad.why_unranked = "its PSIS-LOO is unreliable: Pareto k̂ > 0.7 at 3 of 50 samples"
+    ranked = rank([bad, _score("far", far), _score("a", a), _score("close", close)])
+    assert [(r.label, r.rank) for r in ranked] == [
+        ("a", 1),
+        ("close", 2),
+        ("far", 3),
+        ("bad", None),
+    ]
+    assert math.isnan(ranked[3].d_elpd) and math.isnan(ranked[3].d_se)
+    assert "not separated" in margin_words(ranked[0], ranked[1])
+    assert "a predicts better than far by 25" in margin_words(ranked[0], ranked[2])
+    # nothing reliable: nothing is ranked, and compare.json says rank null
+    only = rank([bad])
+    assert only[0].rank is None and only[0].to_dict()["rank"] is None
+
+
 def _mitsuba_samples(path: Path, alphas=(0.15, 0.15, 0.15)) -> Path:
     """f from Mitsuba's blendbsdf(diffuse, Beckmann roughconductor) eval, 1% noise, R,G,B;
     channel c from a blend whose roughconductor has alpha ``alphas[c]``."""
@@ -183,13 +216,14 @@ def _mitsuba_samples(path: Path, alphas=(0.15, 0.15, 0.15)) -> Path:
     return path
 
 
-def test_fit_model_all_ranks_the_generating_model_first(tmp_path: Path) -> None:
+def test_fit_several_models_ranks_the_generating_model_first(tmp_path: Path) -> None:
     samples = _mitsuba_samples(tmp_path / "s.parquet")
     # One priors file for every model: names a model lacks (m for Phong, n for TS) are dropped.
     priors = tmp_path / "priors.toml"
     priors.write_text("[parameters.m]\nupper = 0.8\n[parameters.n]\nlower = 1.5\n")
     res = subprocess.run(
-        [*GONIO, "fit", str(samples), "--model", "all", "--no-mcmc", "--compare-shared",
+        [*GONIO, "fit", str(samples), "--model", "lambert,phong,phong-normalized,blinn-phong,ts",
+         "--no-mcmc", "--compare-shared",
          "--option", "shadowing=smith-rational", "--option", "fresnel=none",
          "--priors", str(priors)],
         capture_output=True, text=True, timeout=600,
@@ -258,3 +292,42 @@ def test_fit_bad_likelihood_and_priors_are_one_line(tmp_path: Path) -> None:
     assert "--likelihood" in _one_line(run("--likelihood", "cauchy"))
     assert "nope.toml" in _one_line(run("--priors", str(tmp_path / "nope.toml")))
     assert "not a parameter of lambert" in _one_line(run("--model", "lambert", "--shared", "kd,x"))
+
+
+def test_a_comparison_whose_loo_fails_ranks_nothing_and_says_why(tmp_path: Path) -> None:
+    """Samples of Mitsuba's own BSDF with three gross outliers (30× f at a σ of 2 %): under the
+    Gaussian likelihood every fit's PSIS-LOO has Pareto k̂ far above 0.7 (measured: lambert
+    max 15 at 19 samples, phong max 4 at 143), so no elpd is an estimate and nothing may be
+    ranked — the command says so per model and exits 3; --accept-poor-fit accepts it."""
+    from brdfdata.directions import grid_direction_pairs
+    from brdfdata.samples import write_samples
+    from simulator.scene import BlendMaterial, DiffuseMaterial, RoughConductorMaterial
+    from simulator.truth import direct_samples
+
+    wi, wo = grid_direction_pairs([10, 30, 50, 70], np.arange(2, 81, 6), [180, 150, 110, 60, 0])
+    blend = BlendMaterial(
+        weight=0.25,
+        first=DiffuseMaterial(reflectance=(0.6, 0.4, 0.2)),
+        second=RoughConductorMaterial(alpha=0.2, conductor="none"),
+    )
+    table, _ = direct_samples(blend, wi, wo, rel_sigma=0.02, floor_sr=1e-3, rng=5, channels="R")
+    table.f = table.f.copy()
+    table.f[[5, 77, 150]] *= 30.0
+    path = tmp_path / "samples.parquet"
+    write_samples(path, table)
+
+    def fit(*args: str) -> subprocess.CompletedProcess:
+        cmd = [*GONIO, "fit", str(path), "--model", "lambert,phong", "--no-mcmc", *args]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+
+    res = fit("--out", str(tmp_path / "a"))
+    assert res.returncode == 3, res.stdout + res.stderr
+    out = " ".join(res.stdout.split())  # rich wraps long lines on a narrow pipe
+    for name in ("lambert", "phong"):
+        assert f"not ranked: {name}: its PSIS-LOO is unreliable: Pareto k̂ > 0.7 at" in out
+    assert "no model could be ranked" in out
+    rows, skipped = read_compare(tmp_path / "a" / "compare.json")
+    assert [r["rank"] for r in rows] == [None, None] and skipped == []
+    assert all(r["why_unranked"] and r["d_elpd"] is None for r in rows)
+    res = fit("--out", str(tmp_path / "b"), "--accept-poor-fit")
+    assert res.returncode == 0 and "accepted (--accept-poor-fit)" in res.stdout, res.stdout

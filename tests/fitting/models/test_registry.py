@@ -1,5 +1,5 @@
 """The model registry (issue 21 item 5): one dispatcher, aliases, named variants, options with
-allowed values, one-line errors naming what is allowed, groups used by the model comparison."""
+allowed values, one-line errors naming what is allowed, what `--model all` fits."""
 
 from __future__ import annotations
 
@@ -70,20 +70,43 @@ def test_errors_name_what_is_allowed():
         models.register(models.ModelEntry("ward", seed.Lambert))
 
 
-def test_group_all_and_applicable_options_drive_the_comparison():
-    assert models.group("all") == [
-        "lambert",
-        "phong",
-        "phong-normalized",
-        "blinn-phong",
-        "torrance-sparrow",
+def _in_plane(n: int = 200):
+    """Directions of an in-plane (isotropic) measurement: one sample orientation."""
+    rng = np.random.default_rng(3)
+    ti, to = rng.uniform(0.05, 1.3, n), rng.uniform(0.05, 1.3, n)
+    wi = np.stack([np.sin(ti), np.zeros(n), np.cos(ti)], 1)
+    wo = np.stack([-np.sin(to), np.zeros(n), np.cos(to)], 1)
+    return wi, wo
+
+
+def test_model_all_fits_every_registered_model_or_says_why_not():
+    opts = {"shadowing": "smith-rational", "fresnel": "none"}
+    for directions, anisotropic_skipped in ((_in_plane(), True), (None, False)):
+        cands = compare.candidates("all", opts, directions=directions)
+        skipped = compare.skipped_models("all", opts, directions)
+        # every registered model and variant is either fitted or listed with its reason
+        assert sorted([c.model for c in cands] + [s.model for s in skipped]) == sorted(
+            models.names()
+        )
+        why = {s.model: s.reason for s in skipped}
+        # these options make torrance-sparrow the named variant ts-beckmann-smith: fitted once
+        assert why["ts-beckmann-smith"] == "the same model as torrance-sparrow with these options"
+        aniso = {n for n in models.names() if "orientations" in models.entry(n).needs}
+        assert aniso and (aniso <= set(why)) == anisotropic_skipped
+        for n in aniso & set(why):
+            assert "of the 4 sample orientations" in why[n]
+    # several names by comma (aliases resolve), each taking the options that apply to it
+    cands = compare.candidates("lambert, ts", {"fresnel": "none"})
+    assert [(c.model, c.options) for c in cands] == [
+        ("lambert", {}),
+        ("torrance-sparrow", {"fresnel": "none"}),
     ]
     assert models.applicable_options("lambert", {"fresnel": "none"}) == {}
     assert models.applicable_options("torrance-sparrow", {"fresnel": "none", "x": "1"}) == {
         "fresnel": "none"
     }
     cands = compare.candidates("all", {"fresnel": "none"})
-    assert [c.model for c in cands] == models.group("all")
+    assert [c.model for c in cands] == models.names()
     assert {c.label: c.options for c in cands}["torrance-sparrow"] == {"fresnel": "none"}
     # a single model by variant or alias; unknown options fail with the allowed ones
     assert compare.candidates("ts-ggx-smith")[0].model == "ts-ggx-smith"
