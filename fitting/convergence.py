@@ -29,7 +29,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from arviz_stats.base import array_stats
 
 __all__ = [
     "ConvergenceTarget",
@@ -118,6 +117,10 @@ def diagnose(ensembles: list[np.ndarray]) -> Diagnostics:
     if draws.shape[1] < 8:
         nan = np.full(d, np.nan)
         return Diagnostics(nan, nan, nan)
+    # Imported here, not with the module: arviz-stats pulls in scipy.signal and scipy.stats
+    # (1.5 CPU-s), which every `gonio fit` paid — a --no-mcmc fit or a bad input too.
+    from arviz_stats.base import array_stats
+
     x = np.moveaxis(draws, 2, 0)  # (D, K, M): ArviZ's chain and draw axes last
     with np.errstate(invalid="ignore", divide="ignore"):
         rhat = array_stats.rhat(x, chain_axis=-2, draw_axis=-1, method="rank")

@@ -7,6 +7,11 @@ in a child interpreter first; only if it exits cleanly do we select the llvm var
 libLLVM 19 and, on success, export that variable in this process before the variant is set.
 
 Override with the environment variable ``GONIO_MITSUBA_VARIANT`` (e.g. ``scalar_rgb``).
+
+The probe's answer is exported (``GONIO_MITSUBA_PROBED``, with the interpreter it holds for) so
+that the processes this one starts — `gonio` commands a study or the tests run, spawned workers
+— use it instead of probing again: the probe is a second interpreter importing Mitsuba and
+rendering, ~0.5 CPU-s each time (47 times in one `make test`, measured).
 """
 
 from __future__ import annotations
@@ -24,6 +29,8 @@ log = logging.getLogger(__name__)
 
 FALLBACK = "scalar_rgb"
 ENV_OVERRIDE = "GONIO_MITSUBA_VARIANT"
+#: "PREFER=CHOSEN@PYTHON": what the probe chose for PREFER in this interpreter's parent.
+PROBED_ENV = "GONIO_MITSUBA_PROBED"
 # libLLVM ≥ 17 locations tried when drjit's own lookup does not work (Debian/Ubuntu package paths).
 LLVM_CANDIDATES = (
     "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1",
@@ -79,7 +86,8 @@ def probe_variant(variant: str, env: dict[str, str] | None = None, timeout_s: fl
 def choose_variant(prefer: str = "llvm_ad_rgb") -> str:
     """Return a usable Mitsuba variant name (cached per process).
 
-    Order: ``$GONIO_MITSUBA_VARIANT`` if set; else ``prefer`` if the subprocess probe passes
+    Order: ``$GONIO_MITSUBA_VARIANT`` if set; else what a parent process's probe chose
+    (``$GONIO_MITSUBA_PROBED``, module docstring); else ``prefer`` if the subprocess probe passes
     (retrying with ``DRJIT_LIBLLVM_PATH`` = a libLLVM ≥ 17 for llvm variants); else ``scalar_rgb``,
     with a single logged note giving the reason.
     """
@@ -88,6 +96,18 @@ def choose_variant(prefer: str = "llvm_ad_rgb") -> str:
         return forced
     if not prefer.startswith("llvm"):
         return prefer
+    key, _, inherited = os.environ.get(PROBED_ENV, "").partition("=")
+    chosen, _, python = inherited.partition("@")
+    if key == prefer and python == sys.executable and chosen in (prefer, FALLBACK):
+        return chosen
+    chosen = _probed_choice(prefer)
+    os.environ[PROBED_ENV] = f"{prefer}={chosen}@{sys.executable}"
+    return chosen
+
+
+def _probed_choice(prefer: str) -> str:
+    """``prefer`` if its probe passes (with a libLLVM ≥ 17 found for it if need be), else
+    the fallback with one logged note."""
     ok, reason = probe_variant(prefer)
     if ok:
         return prefer

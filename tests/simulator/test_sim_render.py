@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -264,6 +265,7 @@ def test_variant_falls_back_with_one_note(monkeypatch, caplog):
         return False, "probe exit code -6: simulated abort"
 
     monkeypatch.delenv(variant_mod.ENV_OVERRIDE, raising=False)
+    monkeypatch.setenv(variant_mod.PROBED_ENV, "")  # no parent's answer (and restored after)
     monkeypatch.setattr(variant_mod, "probe_variant", failing_probe)
     variant_mod.choose_variant.cache_clear()
     try:
@@ -275,3 +277,15 @@ def test_variant_falls_back_with_one_note(monkeypatch, caplog):
     notes = [r for r in caplog.records if "llvm variant unavailable" in r.getMessage()]
     assert len(notes) == 1 and "simulated abort" in notes[0].getMessage()
     assert calls  # the probe really was consulted
+    # the answer is passed on to the processes this one starts, which do not probe again
+    assert os.environ[variant_mod.PROBED_ENV] == f"llvm_ad_rgb=scalar_rgb@{sys.executable}"
+    calls.clear()
+    variant_mod.choose_variant.cache_clear()
+    try:
+        assert variant_mod.choose_variant() == "scalar_rgb" and calls == []
+        # an answer for another interpreter is not taken
+        monkeypatch.setenv(variant_mod.PROBED_ENV, "llvm_ad_rgb=llvm_ad_rgb@/elsewhere/python")
+        variant_mod.choose_variant.cache_clear()
+        assert variant_mod.choose_variant() == "scalar_rgb" and calls  # probed again
+    finally:
+        variant_mod.choose_variant.cache_clear()
