@@ -101,6 +101,13 @@ def pytest_configure(config: pytest.Config) -> None:
         "time (a camera's frame period, a serial link, a timeout); it starts beside the longest "
         "modules, whose repeat pools then have the cores (pytest_collection_modifyitems)",
     )
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        # Probe Mitsuba's variant once, in the process that starts the workers: its answer is
+        # in the environment every worker, pool process and `gonio` subprocess inherits
+        # (simulator.variant), instead of ~50 probes of ~0.5 CPU-s each across the suite.
+        from simulator.variant import choose_variant
+
+        choose_variant()
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
