@@ -11,7 +11,6 @@ through a k-d tree, then 2-opt inside overlapping windows along the tour.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from acquisition.config import AxisConfig
 from acquisition.motion import axis_speed_rad_s, move_time_s
@@ -111,6 +110,10 @@ def _nearest_neighbour_kdtree(
     unvisited poses (rebuilt whenever half of it has been visited, so such a query finds a free
     pose among few candidates). Work O(n log n), memory O(n · CANDIDATES).
     """
+    # Imported for the large plans only: scipy.spatial is 0.8 CPU-s of every `gonio acquire`
+    # (and of one that stops at a bad rig file), and the plans that reach here are rare.
+    from scipy.spatial import cKDTree
+
     pts = vectors / np.array([axis_speed_rad_s(a) for a in axes.values()])
     n = len(vectors)
     k = min(CANDIDATES + 1, n)
@@ -124,7 +127,7 @@ def _nearest_neighbour_kdtree(
     tour[0] = int(np.argmin(move_time_s(axes, start, vectors)))
     visited[tour[0]] = True
     alive = np.flatnonzero(~visited)
-    tree: cKDTree | None = None
+    tree = None  # a cKDTree of the unvisited poses
     used = 0  # visited poses still in `tree`
     for t in range(1, n):
         here = tour[t - 1]

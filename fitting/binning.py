@@ -52,11 +52,11 @@ from brdfdata.samples import (
     SamplesError,
     SampleTable,
     check_columns,
+    dark_snr_of,
     open_samples_file,
     row_kinds,
     table_from_arrow,
 )
-from fitting.likelihood import dark_snr_of
 from plumbing.hashing import sha256_file
 
 __all__ = [

@@ -31,11 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
-from brdfdata.samples import SampleTable
+from brdfdata.samples import SampleTable, dark_snr_of
 from fitting import models
 from fitting.budget import add_systematic, left_out_words, read_budget
 from fitting.convergence import diagnose
-from fitting.likelihood import Likelihood, dark_snr_of
+from fitting.likelihood import Likelihood
 from fitting.lsq import fit_least_squares, polish_in_blocks
 from fitting.mcmc import ChainFile, McmcOptions, chain_diagnostics, run_mcmc
 from fitting.mismatch import regional_discrepancy, sandwich_adjust

@@ -66,7 +66,7 @@ import numpy as np
 from scipy.special import gammaln, log_ndtr
 
 from brdfdata.directions import normalize, spherical_to_vector
-from brdfdata.samples import SampleTable, row_kinds
+from brdfdata.samples import DARK_SNR, SampleTable, row_kinds
 from fitting.likelihood_kernels import gauss_discrepancy_sum
 from fitting.nuisance import ANGLE_NUISANCES, arm_deltas, arm_rows, measured_geometry, to_si
 from fitting.priors import ParameterSpace
@@ -75,28 +75,13 @@ __all__ = [
     "ChannelData",
     "Likelihood",
     "LIKELIHOOD_KINDS",
-    "DARK_SNR",
-    "dark_snr_of",
     "F32_LNL_LIMIT",
 ]
-
-#: The calibration's default DARK rule (calibration.reduce.ReduceOptions.min_snr): f/σ < 3.
-DARK_SNR = 3.0
 
 LIKELIHOOD_KINDS = ("gaussian", "student-t")
 
 #: The largest change of ln L from float32 rounding the MCMC accepts (module docstring).
 F32_LNL_LIMIT = 0.01
-
-
-def dark_snr_of(metadata: dict[str, str]) -> float:
-    """The DARK rule's f/σ limit a calibration used (samples metadata ``gonio.calibration``,
-    key min_snr), else the calibration's default."""
-    try:
-        value = json.loads(metadata.get("gonio.calibration", "{}")).get("min_snr")
-    except (TypeError, ValueError, AttributeError):
-        value = None
-    return float(value) if isinstance(value, int | float) and value > 0 else DARK_SNR
 
 
 _LN_2PI = float(np.log(2 * np.pi))

@@ -27,6 +27,7 @@ from brdfdata.samples.files import (
 from brdfdata.samples.guards import GuardError, check_samples, merge_duplicates
 from brdfdata.samples.table import (
     CHANNELS,
+    DARK_SNR,
     FLAG_ROLES,
     OPTIONAL_COLUMNS,
     REQUIRED_COLUMNS,
@@ -35,6 +36,7 @@ from brdfdata.samples.table import (
     RowKinds,
     SamplesError,
     SampleTable,
+    dark_snr_of,
     row_kinds,
 )
 
@@ -47,6 +49,8 @@ __all__ = [
     "FLAG_ROLES",
     "RowKinds",
     "row_kinds",
+    "DARK_SNR",
+    "dark_snr_of",
     "SampleTable",
     "SamplesError",
     "GuardError",

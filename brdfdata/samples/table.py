@@ -7,6 +7,7 @@ texel index iy·n + ix on the sample plane (calibration.texels), with the grid i
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,6 +28,8 @@ __all__ = [
     "CENSORING",
     "RowKinds",
     "row_kinds",
+    "DARK_SNR",
+    "dark_snr_of",
     "SampleTable",
     "SamplesError",
 ]
@@ -104,6 +107,20 @@ class RowKinds:
     @property
     def measured(self) -> np.ndarray:
         return self.usable & ~self.saturated & ~self.dark
+
+
+#: The calibration's default DARK rule (calibration.reduce.ReduceOptions.min_snr): f/σ < 3.
+DARK_SNR = 3.0
+
+
+def dark_snr_of(metadata: dict[str, str]) -> float:
+    """The DARK rule's f/σ limit a calibration used (samples metadata ``gonio.calibration``,
+    key min_snr), else the calibration's default."""
+    try:
+        value = json.loads(metadata.get("gonio.calibration", "{}")).get("min_snr")
+    except (TypeError, ValueError, AttributeError):
+        value = None
+    return float(value) if isinstance(value, int | float) and value > 0 else DARK_SNR
 
 
 def row_kinds(table: SampleTable) -> RowKinds:
