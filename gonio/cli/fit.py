@@ -358,7 +358,8 @@ def _show_comparison(ranked, dest: Path) -> None:
             return "–"
         return f"{x:.0f}" if abs(x) >= 100 else f"{x:.1f}"
 
-    t = Table(title=f"Model comparison, {ranked[0].n} samples (best first; elpd in nats)")
+    order = "best first" if ranked[0].rank == 1 else "none could be ranked"
+    t = Table(title=f"Model comparison, {ranked[0].n} samples ({order}; elpd in nats)")
     for col in (
         "rank",
         "model",

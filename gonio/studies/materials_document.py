@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from fitting.convergence import TAU_LENGTHS
 from gonio.studies.common import pyplot, read_record
 from gonio.studies.materials_sweep import (
     CSV_NAME,
@@ -253,6 +254,12 @@ def _g(x: Any, fmt: str) -> str:
     return format(x, fmt) if math.isfinite(x) else "n/a"
 
 
+def _rank(x: Any) -> str:
+    """A PSIS-LOO rank, or "not ranked" (NaN: its score was unreliable, fitting.compare)."""
+    x = float(x)
+    return str(int(x)) if math.isfinite(x) else "not ranked"
+
+
 def write_markdown(
     path: Path,
     rows: list[dict[str, Any]],
@@ -291,7 +298,8 @@ def write_markdown(
         f"same weight, grazing ones included), and fitted in channel(s) "
         f"{', '.join(cfg.channels)} by least squares "
         f"({cfg.n_starts} starts) then emcee ({cfg.walkers} walkers, until the "
-        f"chain > 50 τ (emcee's criterion), then on until every R̂ < {RHAT_MAX} and ESS ≥ "
+        f"chain ≥ {TAU_LENGTHS} τ (from which emcee's τ is trusted), then on until every "
+        f"R̂ < {RHAT_MAX} and ESS ≥ "
         f"{ESS_MIN:.0f}, at most {cfg.max_steps} steps), every "
         "model with the fitted fractional model-discrepancy term s (σ_tot² = σ² + (s f̃)², "
         "f̃ the model's least-squares prediction, frozen before the MCMC).",
@@ -308,7 +316,9 @@ def write_markdown(
         "optimum (no discrepancy term), for comparison. "
         "**s** = fitted discrepancy (posterior median). **R̂ / ESS**: worst parameter; "
         f"converged = every R̂ < {RHAT_MAX} and every ESS ≥ {ESS_MIN:.0f}. **LOO rank**: "
-        "PSIS-LOO among the models on the same samples (1 = best; Δelpd ± SE in nats).",
+        "PSIS-LOO among the models on the same samples (1 = best; Δelpd ± SE in nats); "
+        '"not ranked" where that score is unreliable (a Pareto k̂ > 0.7, or a sampler that '
+        "failed its convergence verdict).",
         "",
         "The verdicts are generated from these numbers with fixed rules: the best model is the "
         "one with the least held-out error; Lambert is called close to the best within "
@@ -439,7 +449,7 @@ def _fits_table(rows: list[dict[str, Any]], mats: dict) -> list[str]:
             f"{r['model']} | {_pct(float(r['rel_rms']))} | "
             f"{_pct(float(r.get('rel_rms_lsq', math.nan)))} | {_g(r['ngan_l2'], '.3g')} | "
             f"{_g(r['discrepancy'], '.3f')} | {_g(r['rhat_max'], '.4f')} | "
-            f"{_g(r['ess_min'], '.0f')} | {conv} | {int(float(r['loo_rank']))} | "
+            f"{_g(r['ess_min'], '.0f')} | {conv} | {_rank(r['loo_rank'])} | "
             f"{_g(r['d_elpd'], '.1f')} ± {_g(r['d_se'], '.1f')} | {int(float(r['samples']))} | "
             f"{_g(r['fit_s'], '.1f')} |"
         )

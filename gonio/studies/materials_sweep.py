@@ -394,7 +394,7 @@ def _material(key: str, scene, cfg: RealMaterialsConfig, root: Path, step, bar):
     rank(scores)
     for r, sc in zip(mrows, scores, strict=True):
         r.update(
-            loo_rank=sc.rank,
+            loo_rank=float("nan") if sc.rank is None else sc.rank,  # NaN: not ranked
             elpd_loo=sc.elpd_loo,
             se_loo=sc.se_loo,
             d_elpd=sc.d_elpd,

@@ -380,7 +380,12 @@ def test_tiny_end_to_end_run_writes_md_csv_png(tmp_path) -> None:
         assert r["samples"] > 0 and 4 <= r["poses"] <= 6  # 1 × 3 × 2 grid, minus unreachable
         assert np.isfinite(r["rel_rms"]) and np.isfinite(r["ngan_l2"]) and r["ngan_l2"] > 0
         assert 0 < r["discrepancy"] <= 1
-        assert r["loo_rank"] in (1.0, 2.0)
+    # Ranked 1, 2, … where the PSIS-LOO score is reliable; NaN ("not ranked" on the page) where
+    # it is not (fitting.compare: a k̂ > 0.7 or a failed sampler, as a 300-step chain may be).
+    ranks = sorted(r["loo_rank"] for r in csv_rows if np.isfinite(r["loo_rank"]))
+    assert ranks == list(range(1, len(ranks) + 1))
+    if len(ranks) < len(csv_rows):
+        assert "| not ranked |" in md
     lam = next(r for r in csv_rows if r["model"] == "lambert")
     # No Lambertian can beat the least-squares constant on the same grid (a property of any
     # fit, independent of the sampler); paper is near-Lambertian, so the fit lands close to it.
