@@ -264,6 +264,8 @@ def _checked_fit_args(table, model: str, fix, priors, cand_args, mcmc_args):
 
     option, shared, compare_shared = cand_args
     likelihood, walkers, steps = mcmc_args
+    if model != "all" and "all" in (n.strip() for n in model.split(",")):
+        raise UserError(f"--model {model}: all names every model; give it alone")
     if model != "all":
         try:  # an alias (e.g. "ts") names its model
             model = ",".join(models.resolve(n.strip()) for n in model.split(",") if n.strip())

@@ -292,6 +292,8 @@ def test_fit_bad_likelihood_and_priors_are_one_line(tmp_path: Path) -> None:
     assert "--likelihood" in _one_line(run("--likelihood", "cauchy"))
     assert "nope.toml" in _one_line(run("--priors", str(tmp_path / "nope.toml")))
     assert "not a parameter of lambert" in _one_line(run("--model", "lambert", "--shared", "kd,x"))
+    assert "give it alone" in _one_line(run("--model", "lambert,all"))
+    assert "unknown model 'nope'" in _one_line(run("--model", "lambert,nope"))
 
 
 def test_a_comparison_whose_loo_fails_ranks_nothing_and_says_why(tmp_path: Path) -> None:
