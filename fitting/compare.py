@@ -61,7 +61,7 @@ __all__ = [
     "Candidate",
     "Skipped",
     "candidates",
-    "skipped_models",
+    "plan_candidates",
     "restrict",
     "run_comparison",
 ]
@@ -507,11 +507,6 @@ def _selection(
     return chosen, skipped
 
 
-def skipped_models(model: str, options: Mapping | None = None, directions=None) -> list[Skipped]:
-    """The models a --model value names that :func:`candidates` leaves out, with the reason."""
-    return _selection(model, options, directions)[1]
-
-
 def candidates(
     model: str,
     options: Mapping | None = None,
@@ -520,10 +515,25 @@ def candidates(
     compare_shared: bool = False,
     directions=None,
 ) -> list[Candidate]:
-    """The fits a ``gonio fit --model`` call asks for: one model (a registered name, a named
+    """The fits of :func:`plan_candidates`, without the models it leaves out."""
+    return plan_candidates(
+        model, options, shared, compare_shared=compare_shared, directions=directions
+    )[0]
+
+
+def plan_candidates(
+    model: str,
+    options: Mapping | None = None,
+    shared: Sequence[str] = ("m",),
+    *,
+    compare_shared: bool = False,
+    directions=None,
+) -> tuple[list[Candidate], list[Skipped]]:
+    """(the fits, the models left out with the reason) a ``gonio fit --model`` call asks
+    for: one model (a registered name, a named
     variant or an alias, its options validated by the registry: ValueError naming the allowed
     ones), several separated by commas, or "all" (every registered one the samples can
-    determine; :func:`skipped_models` lists the others with the reason). With several models
+    determine; the others come back as :class:`Skipped`). With several models
     each takes the ``options`` that apply to it and have an allowed value, and shared names a
     model lacks are dropped for it. ``m`` stands for the Phong exponent n where a model has
     no m; any other unknown shared name is an error for a single model. With
@@ -532,7 +542,7 @@ def candidates(
     samples' directions, which decide whether an anisotropic model can be determined."""
     from fitting import models
 
-    chosen, _ = _selection(model, options, directions)
+    chosen, skipped = _selection(model, options, directions)
     single = len(chosen) == 1 and model != "all" and "," not in model
     out = []
     for name, opts in chosen:
@@ -547,7 +557,7 @@ def candidates(
         out.append(Candidate(name, name, opts, sh))
         if compare_shared and sh:
             out.append(Candidate(f"{name}-per-channel", name, opts, ()))
-    return out
+    return out, skipped
 
 
 def restrict(model, fix: Mapping[str, float] | None, priors) -> tuple[dict, object]:
@@ -599,7 +609,7 @@ def run_comparison(
     fit-<label>.json/.h5 in ``out_dir``, score and rank them, write ``out_dir/compare.json``.
     ``on_fit(candidate, result)`` is called after each fit; ``setups`` (label →
     fitting.fit.FitSetup) are the candidates' setups where the caller has checked them;
-    ``skipped`` (:func:`skipped_models`) are listed in compare.json.
+    ``skipped`` (:func:`plan_candidates`) are listed in compare.json.
     Returns (ranked scores, {label: FitResult})."""
     from fitting.fit import fit_samples
 

@@ -82,8 +82,7 @@ def _in_plane(n: int = 200):
 def test_model_all_fits_every_registered_model_or_says_why_not():
     opts = {"shadowing": "smith-rational", "fresnel": "none"}
     for directions, anisotropic_skipped in ((_in_plane(), True), (None, False)):
-        cands = compare.candidates("all", opts, directions=directions)
-        skipped = compare.skipped_models("all", opts, directions)
+        cands, skipped = compare.plan_candidates("all", opts, directions=directions)
         # every registered model and variant is either fitted or listed with its reason
         assert sorted([c.model for c in cands] + [s.model for s in skipped]) == sorted(
             models.names()
