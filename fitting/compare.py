@@ -61,7 +61,6 @@ __all__ = [
     "Candidate",
     "Skipped",
     "candidates",
-    "plan_candidates",
     "restrict",
     "run_comparison",
 ]
@@ -514,32 +513,18 @@ def candidates(
     *,
     compare_shared: bool = False,
     directions=None,
-) -> list[Candidate]:
-    """The fits of :func:`plan_candidates`, without the models it leaves out."""
-    return plan_candidates(
-        model, options, shared, compare_shared=compare_shared, directions=directions
-    )[0]
-
-
-def plan_candidates(
-    model: str,
-    options: Mapping | None = None,
-    shared: Sequence[str] = ("m",),
-    *,
-    compare_shared: bool = False,
-    directions=None,
 ) -> tuple[list[Candidate], list[Skipped]]:
     """(the fits, the models left out with the reason) a ``gonio fit --model`` call asks
-    for: one model (a registered name, a named
-    variant or an alias, its options validated by the registry: ValueError naming the allowed
-    ones), several separated by commas, or "all" (every registered one the samples can
-    determine; the others come back as :class:`Skipped`). With several models
-    each takes the ``options`` that apply to it and have an allowed value, and shared names a
-    model lacks are dropped for it. ``m`` stands for the Phong exponent n where a model has
-    no m; any other unknown shared name is an error for a single model. With
-    ``compare_shared`` each model whose shared set is non-empty is fitted again with every
-    parameter per channel (label suffix ``-per-channel``). ``directions`` (wi, wo): the
-    samples' directions, which decide whether an anisotropic model can be determined."""
+    for: one model (a registered name, a named variant or an alias, its options validated by
+    the registry: ValueError naming the allowed ones), several separated by commas, or "all"
+    (every registered one the samples can determine; the others come back as
+    :class:`Skipped`). With several models each takes the ``options`` that apply to it and
+    have an allowed value, and shared names a model lacks are dropped for it. ``m`` stands
+    for the Phong exponent n where a model has no m; any other unknown shared name is an
+    error for a single model. With ``compare_shared`` each model whose shared set is
+    non-empty is fitted again with every parameter per channel (label suffix
+    ``-per-channel``). ``directions`` (wi, wo): the samples' directions, which decide
+    whether an anisotropic model can be determined."""
     from fitting import models
 
     chosen, skipped = _selection(model, options, directions)
@@ -609,7 +594,7 @@ def run_comparison(
     fit-<label>.json/.h5 in ``out_dir``, score and rank them, write ``out_dir/compare.json``.
     ``on_fit(candidate, result)`` is called after each fit; ``setups`` (label →
     fitting.fit.FitSetup) are the candidates' setups where the caller has checked them;
-    ``skipped`` (:func:`plan_candidates`) are listed in compare.json.
+    ``skipped`` (:func:`candidates`) are listed in compare.json.
     Returns (ranked scores, {label: FitResult})."""
     from fitting.fit import fit_samples
 

@@ -257,7 +257,7 @@ def _checked_fit_args(table, model: str, fix, priors, cand_args, mcmc_args):
     """(model, fixed values, priors, candidates, models left out) from the fit command's
     options for the samples ``table``, each mistake one line (UserError)."""
     from fitting import models
-    from fitting.compare import plan_candidates
+    from fitting.compare import candidates
     from fitting.likelihood import LIKELIHOOD_KINDS
     from fitting.priors import PriorsError, load_priors
     from gonio.errors import UserError
@@ -285,7 +285,7 @@ def _checked_fit_args(table, model: str, fix, priors, cand_args, mcmc_args):
     try:
         prior_cfg = load_priors(priors) if priors is not None else None
         opts, directions = kv_pairs(option, "--option"), (table.wi, table.wo)
-        cands, skipped = plan_candidates(
+        cands, skipped = candidates(
             model, opts, shared_names, compare_shared=compare_shared, directions=directions
         )
     except (PriorsError, TypeError, ValueError) as exc:

@@ -261,7 +261,7 @@ def test_per_channel_roughness_wins_when_channels_differ(tmp_path: Path) -> None
 
     table = read_samples(_mitsuba_samples(tmp_path / "s.parquet", alphas=(0.1, 0.15, 0.2)))
     opts = {"shadowing": "smith-rational", "fresnel": "none"}
-    cands = candidates("torrance-sparrow", opts, ("m",), compare_shared=True)
+    cands, _ = candidates("torrance-sparrow", opts, ("m",), compare_shared=True)
     base = FitOptions(mcmc=None, n_starts=2)
     ranked, results = run_comparison(table, cands, base, out_dir=tmp_path)
     assert [r.label for r in ranked] == ["torrance-sparrow-per-channel", "torrance-sparrow"]

@@ -82,7 +82,7 @@ def _in_plane(n: int = 200):
 def test_model_all_fits_every_registered_model_or_says_why_not():
     opts = {"shadowing": "smith-rational", "fresnel": "none"}
     for directions, anisotropic_skipped in ((_in_plane(), True), (None, False)):
-        cands, skipped = compare.plan_candidates("all", opts, directions=directions)
+        cands, skipped = compare.candidates("all", opts, directions=directions)
         # every registered model and variant is either fitted or listed with its reason
         assert sorted([c.model for c in cands] + [s.model for s in skipped]) == sorted(
             models.names()
@@ -95,7 +95,7 @@ def test_model_all_fits_every_registered_model_or_says_why_not():
         for n in aniso & set(why):
             assert "of the 4 sample orientations" in why[n]
     # several names by comma (aliases resolve), each taking the options that apply to it
-    cands = compare.candidates("lambert, ts", {"fresnel": "none"})
+    cands, _ = compare.candidates("lambert, ts", {"fresnel": "none"})
     assert [(c.model, c.options) for c in cands] == [
         ("lambert", {}),
         ("torrance-sparrow", {"fresnel": "none"}),
@@ -104,12 +104,12 @@ def test_model_all_fits_every_registered_model_or_says_why_not():
     assert models.applicable_options("torrance-sparrow", {"fresnel": "none", "x": "1"}) == {
         "fresnel": "none"
     }
-    cands = compare.candidates("all", {"fresnel": "none"})
+    cands, _ = compare.candidates("all", {"fresnel": "none"})
     assert [c.model for c in cands] == models.names()
     assert {c.label: c.options for c in cands}["torrance-sparrow"] == {"fresnel": "none"}
     # a single model by variant or alias; unknown options fail with the allowed ones
-    assert compare.candidates("ts-ggx-smith")[0].model == "ts-ggx-smith"
+    assert compare.candidates("ts-ggx-smith")[0][0].model == "ts-ggx-smith"
     with pytest.raises(ValueError, match="unknown option 'anisotropy'"):
         compare.candidates("torrance-sparrow", {"anisotropy": "0.5"})
-    c = compare.candidates("torrance-sparrow-anisotropic", shared=("alpha_x", "alpha_y", "phi0"))
+    c, _ = compare.candidates("torrance-sparrow-anisotropic", shared=("alpha_x", "alpha_y", "phi0"))
     assert c[0].shared == ("alpha_x", "alpha_y", "phi0")
