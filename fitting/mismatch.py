@@ -50,6 +50,8 @@ from typing import Any
 
 import numpy as np
 
+from fitting.differences import stencil_hessian
+
 __all__ = [
     "REGION_THETA_H",
     "REGION_THETA_D",
@@ -196,35 +198,6 @@ def _leverage(lik, x: np.ndarray, s: float) -> np.ndarray:
     return out
 
 
-def _stencil_hessian(lik, x: np.ndarray, cols: np.ndarray, step: np.ndarray) -> np.ndarray:
-    """−∂² ln L/∂x² over ``cols`` by central second differences, every point in one
-    vectorised call (the likelihood takes walkers in batch)."""
-    d = cols.size
-    pts = [x]
-    for a in range(d):
-        for sign in (1, -1):
-            y = x.copy()
-            y[cols[a]] += sign * step[a]
-            pts.append(y)
-    for a in range(d):
-        for b in range(a + 1, d):
-            for sa, sb in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
-                y = x.copy()
-                y[cols[a]] += sa * step[a]
-                y[cols[b]] += sb * step[b]
-                pts.append(y)
-    ll = lik.log_likelihood(np.array(pts))
-    hess = np.empty((d, d))
-    k = 1 + 2 * d
-    for a in range(d):
-        hess[a, a] = (ll[1 + 2 * a] - 2 * ll[0] + ll[2 + 2 * a]) / step[a] ** 2
-        for b in range(a + 1, d):
-            pp, pm, mp, mm = ll[k : k + 4]
-            hess[a, b] = hess[b, a] = (pp - pm - mp + mm) / (4 * step[a] * step[b])
-            k += 4
-    return -hess
-
-
 def _scores(lik, x: np.ndarray, cols: np.ndarray, step: np.ndarray) -> np.ndarray:
     """Per-row score ∂ ln L_j/∂x over ``cols`` (n, d) by central differences of the pointwise
     log-likelihood (censored rows included, as the fit uses them). One parameter's pair of
@@ -263,7 +236,9 @@ def _sandwich_map(lik, draws: np.ndarray, cols: np.ndarray, lev: np.ndarray):
     # Steps a twentieth of the posterior's own sd: the log-likelihood is near-quadratic there,
     # and its round-off (≈ 1e-16·|ln L|) divided by step² stays below 1e-8 of the curvature.
     step = 0.05 * sd
-    info_obs = _stencil_hessian(lik, x, cols, step) * np.outer(sd, sd)  # in units of sd
+    info_obs = -stencil_hessian(lik.log_likelihood, x, step, cols) * np.outer(
+        sd, sd
+    )  # in units of sd
     psi, _ok = _hc3_scores(lik, x, cols, step, sd, lev)
     try:
         chol = np.linalg.cholesky(np.linalg.inv(info_obs))  # model-based covariance = L Lᵀ
@@ -297,7 +272,7 @@ def _cluster_map(lik, draws: np.ndarray, cols: np.ndarray, lev: np.ndarray):
     if not np.all(sd > 0):
         return None
     step = 0.05 * sd
-    info_obs = _stencil_hessian(lik, x, cols, step) * np.outer(sd, sd)
+    info_obs = -stencil_hessian(lik.log_likelihood, x, step, cols) * np.outer(sd, sd)
     psi, ok = _hc3_scores(lik, x, cols, step, sd, lev)
     groups, inverse = np.unique(clusters[ok], return_inverse=True)
     if groups.size <= 2 * cols.size:

@@ -33,6 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fitting.differences import stencil_hessian
+
 __all__ = [
     "TemperingOptions",
     "TemperedChain",
@@ -43,6 +45,8 @@ __all__ = [
 ]
 
 _STRETCH_A = 2.0
+
+Optimum = tuple[np.ndarray, np.ndarray, float]  # (x̂, covariance, −ln p at x̂)
 
 
 @dataclass(frozen=True)
@@ -176,22 +180,27 @@ def _adapt_ladder(betas, rates, step, opt: TemperingOptions) -> np.ndarray:
 
 
 def distinct_optima(
-    neg_log_post: Callable[[np.ndarray], float],
+    neg_log_post: Callable[[np.ndarray], np.ndarray],
     starts: np.ndarray,
     bounds: list[tuple[float, float]],
     tol_sigma: float = 3.0,
-) -> list[tuple[np.ndarray, np.ndarray, float]]:
-    """Minimise −ln p from every start (L-BFGS-B in the prior box) and keep every distinct
-    optimum: (x̂, covariance from the inverse Hessian, −ln p at x̂), best first. Two optima are
-    one when each lies within ``tol_sigma`` standard deviations of the other."""
+) -> list[Optimum]:
+    """Minimise −ln p (batched: (M, D) → (M,)) from every start (L-BFGS-B in the prior box)
+    and keep every distinct optimum: (x̂, covariance from the inverse Hessian, −ln p at x̂),
+    best first. Two optima are one when either lies within ``tol_sigma`` standard deviations
+    of the other."""
     from scipy.optimize import minimize
 
-    found: list[tuple[np.ndarray, np.ndarray, float]] = []
+    def scalar(x: np.ndarray) -> float:
+        return float(neg_log_post(x[None])[0])
+
+    found: list[Optimum] = []
     for s in starts:
-        res = minimize(neg_log_post, s, method="L-BFGS-B", bounds=bounds)
+        res = minimize(scalar, s, method="L-BFGS-B", bounds=bounds)
         if not np.isfinite(res.fun):
             continue
-        cov = _inverse_hessian(neg_log_post, res.x)
+        step = 1e-4 * np.maximum(np.abs(res.x), 1.0)
+        cov = np.linalg.pinv(stencil_hessian(neg_log_post, res.x, step))
         same = False
         for x_old, cov_old, _ in found:
             d = res.x - x_old
@@ -203,20 +212,6 @@ def distinct_optima(
     return sorted(found, key=lambda t: t[2])
 
 
-def _inverse_hessian(fun, x: np.ndarray) -> np.ndarray:
-    """Central-difference Hessian of ``fun`` at x, inverted (pseudo-inverse where singular)."""
-    D = x.size
-    h = 1e-4 * np.maximum(np.abs(x), 1.0)
-    H = np.empty((D, D))
-    for i in range(D):
-        for j in range(i, D):
-            ei, ej = np.eye(D)[i] * h[i], np.eye(D)[j] * h[j]
-            H[i, j] = H[j, i] = (
-                fun(x + ei + ej) - fun(x + ei - ej) - fun(x - ei + ej) + fun(x - ei - ej)
-            ) / (4 * h[i] * h[j])
-    return np.linalg.pinv(H)
-
-
 def _mahalanobis(d: np.ndarray, cov: np.ndarray) -> float:
     return float(math.sqrt(max(d @ np.linalg.pinv(cov) @ d, 0.0)))
 
@@ -224,8 +219,8 @@ def _mahalanobis(d: np.ndarray, cov: np.ndarray) -> float:
 def mode_masses(
     draws: np.ndarray, optima: list[tuple[np.ndarray, np.ndarray, float]]
 ) -> np.ndarray:
-    """Each draw (M, D) to the optimum nearest in that optimum's own metric; the share of draws
-    per optimum, in the order given."""
+    """Each draw (M, D) to the optimum whose Gaussian (its x̂ and covariance) makes it likeliest;
+    the share of draws per optimum, in the order given."""
     if not optima:
         return np.zeros(0)
     dist = np.column_stack(

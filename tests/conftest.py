@@ -20,7 +20,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 # numba's threads likewise: each worker runs the kernels' serial twins (plumbing.numba_policy's
 # "serial" policy). With two workers on two cores a parallel twin's threads only wait for each other
 # (numba's spin-waits: ~10 % more CPU, tests/support/repeats.py), and every parallel twin a process
-# calls is one more compile of its kernel: 33 CPU-s of a fresh checkout's suite went to compiling
+# calls is one more compile of its kernel: ~36 CPU-s of a fresh checkout's suite went to compiling
 # them (measured with numba's compile events, 2026-12-07). The tests of the parallel twins and of
 # the "auto" policy set the policy they test themselves (tests/fitting/models/test_models.py,
 # tests/calibration/test_hdr_fused.py). Processes the tests start run as a user's would.

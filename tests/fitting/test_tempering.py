@@ -49,7 +49,7 @@ def log_prior(x: np.ndarray) -> np.ndarray:
 def _optima():
     rng = np.random.default_rng(3)
     starts = rng.uniform(-10, 10, (12, 3))
-    return distinct_optima(lambda x: -float(log_like(x)[0]), starts, BOX)
+    return distinct_optima(lambda x: -log_like(x), starts, BOX)
 
 
 def test_the_multi_start_search_keeps_both_optima() -> None:
