@@ -36,8 +36,8 @@ from fitting import models
 from fitting.budget import add_systematic, left_out_words, read_budget
 from fitting.convergence import diagnose
 from fitting.likelihood import Likelihood
-from fitting.lsq import fit_least_squares, polish_in_blocks
-from fitting.mcmc import ChainFile, McmcOptions, chain_diagnostics, run_mcmc
+from fitting.lsq import fit_least_squares, polish_in_blocks, start_points
+from fitting.mcmc import SAMPLERS, ChainFile, McmcOptions, chain_diagnostics, run_mcmc
 from fitting.mismatch import regional_discrepancy, sandwich_adjust
 from fitting.moves import SAMPLER_REVISION
 from fitting.nuisance import (
@@ -51,6 +51,7 @@ from fitting.nuisance import (
 )
 from fitting.priors import DISCREPANCY, ParameterSpace, PriorsConfig, albedo_prior, load_priors
 from fitting.result import FitResult
+from fitting.tempered_run import posterior_modes, run_tempered
 from fitting.verdicts import judge
 
 __all__ = ["FitOptions", "FitSetup", "fit_setup", "best_approximation", "fit_samples", "summarise"]
@@ -301,6 +302,7 @@ def fit_samples(
             "steps_needed": res.steps_needed,
             "precision": precision,
         }
+        diagnostics.update(_tempered_diagnostics(lik, x_lsq, opt, res))
         extras["mcmc"] = res
         extras["notes"] = _chain_notes(res, h5)
     else:
@@ -475,6 +477,23 @@ def best_approximation(table: SampleTable, options: FitOptions | None = None) ->
     return out
 
 
+def _tempered_diagnostics(lik, x_lsq, opt: FitOptions, res) -> dict:
+    """A tempered chain's ladder and the posterior's modes with their masses
+    (fitting.tempered_run.posterior_modes), searched from the least-squares point, the chain's
+    best draw and the least-squares start grid; nothing for the ensemble's chain."""
+    if res.tempering is None:
+        return {}
+    draws = res.flat
+    best = draws[int(np.argmax(res.log_prob.reshape(-1)))]
+    starts = np.vstack([x_lsq[None, :], best[None, :], start_points(lik, opt.n_starts, opt.seed)])
+
+    def neg_log_post(x: np.ndarray) -> np.ndarray:
+        return -lik.log_prob(x)
+
+    modes = posterior_modes(neg_log_post, draws, starts, lik.space)
+    return {"tempering": res.tempering, "modes": modes}
+
+
 def _chain_notes(res, h5) -> list[str]:
     """One line when the run replaced a stored chain of another problem (never silently)."""
     if not getattr(res, "replaced_steps", 0) or h5 is None:
@@ -529,27 +548,40 @@ def _run_ensembles(lik, lsq, x_lsq, opt: FitOptions, rng, h5, progress: bool, co
         lik, opt.model, dict(opt.model_options), opt.likelihood, opt.nu, opt.censor
     )
     mcmc = opt.mcmc
+    if mcmc.sampler not in SAMPLERS:
+        raise ValueError(f"sampler {mcmc.sampler!r}: choose one of {', '.join(SAMPLERS)}")
+    if mcmc.sampler == "tempered":  # a tempered chain is never continued as an ensemble's
+        fingerprint = hashlib.sha256(f"{fingerprint} tempered".encode()).hexdigest()
     log_prob, x0 = lik.log_prob, x_lsq
+    log_like, log_prior = lik.log_likelihood, lik.space.log_prior
     if coords is not None:
         log_prob, x0, (lo, hi) = (
             coords.wrap(lik.log_prob),
             coords.to_sampler(x_lsq),
             coords.bounds(lo, hi),
         )
+        log_like, log_prior = coords.split(lik.log_likelihood, lik.space.log_prior)
     runs = [
-        run_mcmc(
-            log_prob,
-            x0,
-            (lo, hi),
-            mcmc,
-            rng=rng,
-            scale=scale,
-            store=None
-            if h5 is None
-            else ChainFile(h5, "mcmc" if e == 0 else f"mcmc_{e}", fingerprint),
-            progress=progress,
+        (
+            run_tempered(
+                (log_like, log_prior),
+                x0,
+                (lo, hi),
+                mcmc,
+                rng=rng,
+                scale=scale,
+                store=store,
+                progress=progress,
+            )  # fmt: skip
+            if mcmc.sampler == "tempered"
+            else run_mcmc(
+                log_prob, x0, (lo, hi), mcmc, rng=rng, scale=scale, store=store, progress=progress
+            )  # fmt: skip
         )
-        for e in range(max(1, int(opt.ensembles)))
+        for store in (
+            None if h5 is None else ChainFile(h5, "mcmc" if e == 0 else f"mcmc_{e}", fingerprint)
+            for e in range(max(1, int(opt.ensembles)))
+        )
     ]
     res = runs[0]
     if len(runs) > 1:

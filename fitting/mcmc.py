@@ -61,6 +61,7 @@ __all__ = [
     "convergence_verdict",
     "chain_diagnostics",
     "MIN_TAU_LENGTHS",
+    "SAMPLERS",
 ]
 
 #: Every stop by the chain's own rule needs a chain at least this many (largest) τ long
@@ -98,6 +99,8 @@ class McmcResult:
     ess_tail: np.ndarray | None = None
     #: The steps the rule would need in all when a cap stopped the chain first (None: met).
     steps_needed: int | None = None
+    #: A tempered run's ladder and swap rates (fitting.tempered_run); None for the ensemble.
+    tempering: dict | None = None
 
     def set_diagnostics(self, d: Diagnostics) -> None:
         self.rhat, self.ess, self.ess_tail = d.rhat, d.ess_bulk, d.ess_tail
@@ -184,13 +187,22 @@ def _check_chain_file(path: Path) -> None:
         raise ChainFileError(_chain_error(path, exc)) from None
 
 
+#: The samplers a fit can run (McmcOptions.sampler).
+SAMPLERS = ("ensemble", "tempered")
+
+
 @dataclass(frozen=True)
 class McmcOptions:
     """How an ensemble runs: `walkers` (raised to ≥ 2D + 2, even), `max_steps` (a cap), a
     wall-time budget (a cap), `target` (the stopping rule's R̂ and ESS), `target_ess` (stop
     early once every ESS reaches it), the emcee `moves` (a name of MOVES or a list),
     `vectorize` (log_prob takes all walkers at once), `chunk` steps between convergence
-    checks (grows with the chain)."""
+    checks (grows with the chain). `sampler`: "ensemble" (emcee, the default: a unimodal
+    posterior's speed) or "tempered" (fitting.tempered_run: `temperatures` copies of the
+    ensemble down to β = `beta_min` — by default the ladder whose neighbours swap on a
+    D-dimensional posterior, Δ ln β = √(2/D) — `max_steps` steps of which the first half adapts
+    the ladder; for posteriors with several modes or long ridges, at `temperatures` × the
+    cost)."""
 
     walkers: int = 32
     max_steps: int = 2000
@@ -200,6 +212,9 @@ class McmcOptions:
     vectorize: bool = True
     chunk: int = 100
     target: ConvergenceTarget = ConvergenceTarget()
+    sampler: str = "ensemble"
+    temperatures: int = 8
+    beta_min: float | None = None
 
 
 @dataclass(frozen=True)

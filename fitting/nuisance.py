@@ -581,6 +581,18 @@ class SamplerCoordinates:
 
         return log_prob_y
 
+    def split(self, log_like, log_prior):
+        """(ln L_y, ln π_y) for a sampler that weighs the two apart (parallel tempering raises
+        only the likelihood to β): ln L at x(y), and ln π at x(y) with ln |∂x/∂y|."""
+
+        def log_like_y(y: np.ndarray) -> np.ndarray:
+            return log_like(self.from_sampler(y))
+
+        def log_prior_y(y: np.ndarray) -> np.ndarray:
+            return log_prior(self.from_sampler(y)) + self.log_jacobian(y)
+
+        return log_like_y, log_prior_y
+
     def bounds(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A box holding the image of the box [lo, hi] (for placing the first walkers)."""
         ylo, yhi = lo.copy(), hi.copy()

@@ -1,5 +1,5 @@
-"""Parallel tempering over an ensemble, and the modes a posterior's chain visited (issue 44 item 1,
-the first part: the sampler and its mode accounting; `gonio fit` does not call it yet).
+"""Parallel tempering over an ensemble, and the modes a posterior's chain visited (issue 44 item 1:
+the sampler and its mode accounting).
 
 Why. An ensemble sampler's moves (stretch, differential evolution) propose from the spread of
 the other walkers: walkers split between two modes propose jumps between them that land in the
@@ -17,8 +17,9 @@ min(1, exp((β_{t−1} − β_t)(ln L_t − ln L_{t−1}))). The ladder starts g
 ``beta_min`` and adapts during burn-in so that neighbouring swap rates even out (Vousden, Farr &
 Mandel, MNRAS 455, 1919 (2016), eq. 11–13: log spacings move by κ(t)(A_i − A_{i+1}), κ decaying
 as ν⁻¹ t₀/(t + t₀)); it is frozen for the kept half, so the kept chain is a Markov chain with a
-fixed target. ptemcee is that paper's implementation but is not maintained for emcee 3 or
-numpy 2; this module follows it.
+fixed target. `gonio fit --sampler tempered` runs it as the fit's chain (fitting.tempered_run).
+ptemcee is that paper's implementation but is not maintained for emcee 3 or numpy 2; this module
+follows it.
 
 Modes. :func:`mode_masses` assigns each kept draw of β = 1 to the nearest of the distinct optima
 a multi-start search found (in the metric of each optimum's own covariance) and reports each
@@ -64,14 +65,25 @@ class TemperingOptions:
 
 @dataclass
 class TemperedChain:
-    """The β = 1 chain after burn-in, (N, W, D), its log-likelihoods (N, W), the final ladder
-    and the swap acceptance between neighbours (T − 1,) over the kept steps."""
+    """The β = 1 chain of every step, (S, W, D), its log-likelihoods (S, W), the burn-in (the
+    first ``burn`` steps, while the ladder adapted), the final ladder and the swap acceptance
+    between neighbours (T − 1,) over the kept steps."""
 
-    chain: np.ndarray
-    log_like: np.ndarray
+    history: np.ndarray
+    history_log_like: np.ndarray
+    burn: int
     betas: np.ndarray
     swap_acceptance: np.ndarray
     move_acceptance: float
+
+    @property
+    def chain(self) -> np.ndarray:
+        """The kept β = 1 chain (N, W, D): the posterior's draws."""
+        return self.history[self.burn :]
+
+    @property
+    def log_like(self) -> np.ndarray:
+        return self.history_log_like[self.burn :]
 
 
 def parallel_tempering(
@@ -79,10 +91,11 @@ def parallel_tempering(
     log_prior: Callable[[np.ndarray], np.ndarray],
     start: np.ndarray,
     options: TemperingOptions | None = None,
+    on_step: Callable[[int], None] | None = None,
 ) -> TemperedChain:
     """Sample p(x) ∝ L(x) π(x). ``log_like`` and ``log_prior`` take (M, D) points and return
     (M,) values (−inf outside the prior); ``start`` is (T, W, D) or (W, D) (then every
-    temperature starts from it)."""
+    temperature starts from it). ``on_step(k)`` after step k (a progress bar)."""
     opt = options or TemperingOptions()
     rng = np.random.default_rng(opt.seed)
     T, W = opt.temperatures, opt.walkers
@@ -94,7 +107,8 @@ def parallel_tempering(
     lp = log_prior(x.reshape(-1, D)).reshape(T, W)
     ll = np.where(np.isfinite(lp), log_like(x.reshape(-1, D)).reshape(T, W), -np.inf)
     burn = opt.steps // 2
-    kept_x, kept_ll = [], []
+    hist_x = np.empty((opt.steps, W, D))
+    hist_ll = np.empty((opt.steps, W))
     swaps_tried = np.zeros(max(T - 1, 0))
     swaps_done = np.zeros(max(T - 1, 0))
     moves_done = 0
@@ -102,16 +116,18 @@ def parallel_tempering(
         for half in (0, 1):
             moves_done += _stretch_half(x, ll, lp, betas, half, log_like, log_prior, rng)
         accepted = _swap(x, ll, lp, betas, rng)
+        hist_x[step], hist_ll[step] = x[0], ll[0]
         if step >= burn:
             swaps_tried += W
             swaps_done += accepted
-            kept_x.append(x[0].copy())
-            kept_ll.append(ll[0].copy())
         elif T > 2:
             betas = _adapt_ladder(betas, accepted / W, step, opt)
+        if on_step is not None:
+            on_step(step)
     return TemperedChain(
-        chain=np.array(kept_x),
-        log_like=np.array(kept_ll),
+        history=hist_x,
+        history_log_like=hist_ll,
+        burn=burn,
         betas=betas,
         swap_acceptance=swaps_done / np.maximum(swaps_tried, 1),
         move_acceptance=moves_done / (opt.steps * T * W),
@@ -194,13 +210,20 @@ def distinct_optima(
     def scalar(x: np.ndarray) -> float:
         return float(neg_log_post(x[None])[0])
 
+    lo, hi = np.array(bounds, dtype=np.float64).T
+
+    def in_box(x: np.ndarray) -> np.ndarray:
+        # The Hessian's stencil stays in the prior box: at an optimum on a bound a step out of it
+        # reads −ln p = ∞ (NaN curvature); clipped, that axis reads flat and pinv ignores it.
+        return neg_log_post(np.clip(x, lo, hi))
+
     found: list[Optimum] = []
     for s in starts:
         res = minimize(scalar, s, method="L-BFGS-B", bounds=bounds)
         if not np.isfinite(res.fun):
             continue
         step = 1e-4 * np.maximum(np.abs(res.x), 1.0)
-        cov = np.linalg.pinv(stencil_hessian(neg_log_post, res.x, step))
+        cov = _covariance(stencil_hessian(in_box, res.x, step))
         same = False
         for x_old, cov_old, _ in found:
             d = res.x - x_old
@@ -210,6 +233,16 @@ def distinct_optima(
         if not same:
             found.append((res.x, cov, float(res.fun)))
     return sorted(found, key=lambda t: t[2])
+
+
+def _covariance(hess: np.ndarray) -> np.ndarray:
+    """The inverse Hessian with every flat or downhill direction (an optimum on the box's edge, a
+    saddle) given a huge variance instead of none: such a mode is unconstrained along it, and
+    its Gaussian must not claim draws by a vanishing determinant (mode_masses)."""
+    h = np.nan_to_num(0.5 * (hess + hess.T), nan=0.0, posinf=0.0, neginf=0.0)
+    w, v = np.linalg.eigh(h)
+    w = np.maximum(w, 1e-12 * max(float(np.max(np.abs(w))), 1.0))
+    return (v / w) @ v.T
 
 
 def _mahalanobis(d: np.ndarray, cov: np.ndarray) -> float:

@@ -10,33 +10,14 @@ import typer
 from rich.table import Table
 
 from gonio.cli._app import ANALYSIS, DATA, app, kv_pairs, out
+from gonio.cli.fit_options import (
+    BinOption,
+    ModelOption,
+    NoWidenOption,
+    SamplerOption,
+    TemperaturesOption,
+)
 from gonio.plain_text import plain
-
-_ModelOption = Annotated[
-    str,
-    typer.Option(
-        "--model",
-        help="Model (see `gonio models`), several by commas, or all; several are ranked where "
-        "their PSIS-LOO is reliable (all lists any model it leaves out, and why).",
-    ),
-]
-_BinOption = Annotated[
-    float | None,
-    typer.Option(
-        "--bin",
-        help="Bin samples into cells of DEG (0: every row; default: 0.1 for tables over "
-        "1,000,000 rows, streamed in bounded memory; a verdict bounds what it moved).",
-    ),
-]
-
-_NoWidenOption = Annotated[
-    bool,
-    typer.Option(
-        "--no-widen",
-        help="Keep the sampler's intervals: do not widen them for model mismatch (they then "
-        "hold only if the model describes the material).",
-    ),
-]
 
 
 @app.command(rich_help_panel=ANALYSIS)
@@ -48,7 +29,7 @@ def fit(
             "docs/formats.md); other formats: `gonio import`."
         ),
     ],
-    model: _ModelOption = "torrance-sparrow",
+    model: ModelOption = "torrance-sparrow",
     option: Annotated[list[str], typer.Option("--option", help="Model option KEY=VALUE.")] = [],  # noqa: B006
     fix: Annotated[list[str], typer.Option("--fix", help="Hold NAME=VALUE fixed.")] = [],  # noqa: B006
     shared: Annotated[str, typer.Option(help="Comma list of parameters shared by channels.")] = "m",
@@ -92,6 +73,8 @@ def fit(
         typer.Option(help="Cap on MCMC steps (the chain stops once R̂ < 1.01, ESS ≥ 400)."),
     ] = 3000,
     time_budget: Annotated[float | None, typer.Option(help="MCMC wall-time budget [s].")] = None,
+    sampler: SamplerOption = "ensemble",
+    temperatures: TemperaturesOption = 8,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     out_dir: Annotated[
         Path | None, typer.Option("--out", help="Output directory (default: beside SAMPLES).")
@@ -99,8 +82,8 @@ def fit(
     merge_duplicates: Annotated[
         bool, typer.Option("--merge-duplicates", help="Merge repeated rows (combined σ).")
     ] = False,
-    bin_deg: _BinOption = None,
-    no_widen: _NoWidenOption = False,
+    bin_deg: BinOption = None,
+    no_widen: NoWidenOption = False,
 ) -> None:
     """Fit a model to SAMPLES: writes fit-NAME.json, fit-NAME.h5 and material-NAME.xml
     (Mitsuba 3); with several models or --compare-shared also compare.json (ranked by
@@ -113,19 +96,19 @@ def fit(
     if censor:
         out.print("note: --censor is the default now (it does nothing); --drop-flagged excludes")
     table = _read_for_fit(samples, bin_deg, merge_duplicates)
-    model, fixed, prior_cfg, cands, skipped = _checked_fit_args(
-        table, model, fix, priors, (option, shared, compare_shared), (likelihood, walkers, steps)
+    sampling = (likelihood, walkers, steps, time_budget, sampler, temperatures)
+    model, fixed, prior_cfg, cands, skipped, mcmc = _checked_fit_args(
+        table, model, fix, priors, (option, shared, compare_shared), sampling
     )
     chans = [c.strip() for c in channels.split(",")] if channels else None
     from fitting.fit import FitOptions
-    from fitting.mcmc import McmcOptions
 
     base = FitOptions(
         model=model,
         fix=fixed,
         priors=prior_cfg,
         channels=chans,
-        mcmc=None if no_mcmc else McmcOptions(walkers, steps, time_budget),
+        mcmc=None if no_mcmc else mcmc,
         seed=seed,
         likelihood=likelihood,
         censor=not drop_flagged,
@@ -254,8 +237,8 @@ def _show_flag_counts(table, chans, drop_flagged: bool) -> None:
 
 
 def _checked_fit_args(table, model: str, fix, priors, cand_args, mcmc_args):
-    """(model, fixed values, priors, candidates, models left out) from the fit command's
-    options for the samples ``table``, each mistake one line (UserError)."""
+    """(model, fixed values, priors, candidates, models left out, the sampler's options) from
+    the fit command's options for the samples ``table``, each mistake one line (UserError)."""
     from fitting import models
     from fitting.compare import candidates
     from fitting.likelihood import LIKELIHOOD_KINDS
@@ -263,7 +246,9 @@ def _checked_fit_args(table, model: str, fix, priors, cand_args, mcmc_args):
     from gonio.errors import UserError
 
     option, shared, compare_shared = cand_args
-    likelihood, walkers, steps = mcmc_args
+    from fitting.mcmc import SAMPLERS, McmcOptions
+
+    likelihood, walkers, steps, time_budget, sampler, temperatures = mcmc_args
     if model != "all" and "all" in (n.strip() for n in model.split(",")):
         raise UserError(f"--model {model}: all names every model; give it alone")
     if model != "all":
@@ -277,6 +262,10 @@ def _checked_fit_args(table, model: str, fix, priors, cand_args, mcmc_args):
         raise UserError(f"--likelihood {likelihood!r}: use one of {', '.join(LIKELIHOOD_KINDS)}")
     if walkers < 2 or steps < 1:
         raise UserError("--walkers must be ≥ 2 and --steps ≥ 1")
+    if sampler not in SAMPLERS:
+        raise UserError(f"--sampler {sampler!r}: use one of {', '.join(SAMPLERS)}")
+    if not 1 <= temperatures <= 64:
+        raise UserError(f"--temperatures {temperatures}: give 1 to 64 (1: no tempering)")
     try:
         fixed = {k: float(v) for k, v in kv_pairs(fix, "--fix").items()}
     except ValueError as exc:
@@ -290,7 +279,8 @@ def _checked_fit_args(table, model: str, fix, priors, cand_args, mcmc_args):
         )
     except (PriorsError, TypeError, ValueError) as exc:
         raise UserError(str(exc).splitlines()[0]) from None
-    return model, fixed, prior_cfg, cands, skipped
+    mcmc = McmcOptions(walkers, steps, time_budget, sampler=sampler, temperatures=temperatures)
+    return model, fixed, prior_cfg, cands, skipped, mcmc
 
 
 def _show_fit(c, result, dest: Path) -> None:
@@ -309,6 +299,9 @@ def _show_fit(c, result, dest: Path) -> None:
     out.print(t)
     for note in result.extras.get("notes", []):
         out.print(f"note: {note}", markup=False, soft_wrap=True)
+    modes = result.diagnostics.get("modes")
+    if modes is not None:  # a tempered chain: how many modes, and the mass of each
+        out.print(f"posterior: {modes['words']}", markup=False, soft_wrap=True)
     show_verdicts(result.verdicts or [], f"{c.label} verdicts")
 
 

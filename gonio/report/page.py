@@ -170,11 +170,35 @@ def _diagnostics_parts(fit: dict) -> list[str]:
         f"{_fmt(diag.get('converged'))} ({html.escape(str(why))})</p>"
     )
     parts.append(_table(["parameter", "τ [steps]", "ESS", "R-hat"], drows))
+    parts.extend(_modes_parts(diag.get("modes"), diag.get("tempering")))
     parts.extend(_precision_parts(diag.get("precision")))
     good = fit.get("goodness", {})
     if good:
         parts.append("<h3>Goodness of fit</h3>")
         parts.append(_table(list(good), [list(good.values())]))
+    return parts
+
+
+def _modes_parts(modes: dict | None, tempering: dict | None) -> list[str]:
+    """A tempered fit's modes (fitting.tempered_run.posterior_modes) in words and as a table
+    of each mode's mass and place, and its ladder's swap rates."""
+    if not modes:
+        return []
+    parts = [f"<p>Posterior modes: {html.escape(modes['words'])}.</p>"]
+    optima = modes.get("optima") or []
+    if len(optima) > 1:
+        names = list(optima[0])
+        rows = [
+            [f"mode {k + 1}", f"{100 * m:.1f} %", *(opt[n] for n in names)]
+            for k, (m, opt) in enumerate(zip(modes["masses"], optima, strict=True))
+        ]
+        parts.append(_table(["mode", "mass", *names], rows))
+    if tempering:
+        rates = ", ".join(f"{r:.2f}" for r in tempering.get("swap_acceptance", []))
+        parts.append(
+            f"<p>parallel tempering: {tempering.get('temperatures')} temperatures, "
+            f"swap acceptance between neighbours {html.escape(rates)}</p>"
+        )
     return parts
 
 
