@@ -5,10 +5,15 @@ fitting.tempering's sampler run as the fit's MCMC. Its walkers start as the ense
 temperature from the same ball; the β = 1 chain after the ladder's adaptation comes back as a
 fitting.mcmc.McmcResult with the same diagnostics (τ, ArviZ's R̂ and ESS), so everything after
 the sampler — the verdicts, the intervals, the report — reads it as it reads the ensemble's.
-The whole β = 1 chain is saved in the chain file (``fit-<model>.h5``), its first half the burn-in
-as the report draws it.
+The β = 1 chain is saved in the chain file (``fit-<model>.h5``) as the report reads it: the kept
+steps after as many of the burn-in's last steps (the report draws a chain's first half as burn-in
+and its second as the posterior).
 
-A tempered run is not resumed: its first half adapts the ladder, which is no Markov chain to
+The run stops early where it can: the ladder adapts over the first half of the steps, at most
+ADAPT_MAX, and from then on the ensemble's stopping rule (R̂, bulk and tail ESS at the target on
+a chain ≥ MIN_TAU_LENGTHS τ) is checked every CHECK_EVERY steps.
+
+A tempered run is not resumed: its burn-in adapts the ladder, which is no Markov chain to
 continue, so a stored chain is replaced (the fingerprint names the sampler: an ensemble fit never
 continues a tempered chain either, and says so when it replaces one).
 
@@ -28,7 +33,14 @@ import emcee
 import numpy as np
 
 from fitting.chain_file import save_chain
-from fitting.mcmc import ChainFile, McmcOptions, McmcResult, chain_diagnostics, initial_ball
+from fitting.mcmc import (
+    MIN_TAU_LENGTHS,
+    ChainFile,
+    McmcOptions,
+    McmcResult,
+    chain_diagnostics,
+    initial_ball,
+)
 from fitting.tempering import (
     TemperingOptions,
     describe_modes,
@@ -42,6 +54,11 @@ __all__ = ["run_tempered", "posterior_modes", "default_beta_min"]
 
 #: The fewest steps a tempered run takes: half of them adapt the ladder.
 MIN_STEPS = 20
+#: The ladder adapts for half the steps, at most this many (Vousden et al.'s rate κ has fallen
+#: to 2/3 of its start by then, and the default ladder already swaps: default_beta_min); then
+#: the stopping rule is checked every CHECK_EVERY steps.
+ADAPT_MAX = 500
+CHECK_EVERY = 100
 #: A mode holds at least this share of the draws (below it, an optimum is said apart).
 MIN_MASS = 0.01
 
@@ -83,12 +100,19 @@ def run_tempered(
         temperatures=temps,
         walkers=walkers,
         steps=max(int(opt.max_steps), MIN_STEPS),
+        adapt_steps=min(max(int(opt.max_steps), MIN_STEPS) // 2, ADAPT_MAX),
+        check_every=CHECK_EVERY,
         beta_min=float(opt.beta_min if opt.beta_min is not None else default_beta_min(temps, ndim)),
         seed=int(rng.integers(0, 2**63 - 1)),
     )
     with Progress("MCMC (tempered)", topt.steps, enabled=progress, transient=True) as bar:
         tc = parallel_tempering(
-            log_like, log_prior, start, topt, on_step=lambda k: bar.update(completed=k + 1)
+            log_like,
+            log_prior,
+            start,
+            topt,
+            on_step=lambda k: bar.update(completed=k + 1),
+            stop=lambda kept: _rule_met(kept, opt),
         )
     chain = tc.chain
     log_p = tc.log_like + log_prior(chain.reshape(-1, ndim)).reshape(chain.shape[:2])
@@ -103,7 +127,7 @@ def run_tempered(
         rhat=d.rhat,
         acceptance=float(tc.move_acceptance),
         burn=tc.burn,
-        iterations=topt.steps,
+        iterations=len(tc.history),
         converged=False,
         stop_reason="max_steps",
         wall_time_s=time.perf_counter() - t0,
@@ -114,13 +138,20 @@ def run_tempered(
             "swap_acceptance": tc.swap_acceptance.tolist(),
         },
     )
-    if opt.target.met(d.rhat, d.ess_bulk, d.ess_tail):
+    if _rule_met(chain, opt, (tau, d)):
         res.converged, res.stop_reason = True, "converged"
     else:
-        res.steps_needed = d.steps_to(opt.target, topt.steps - tc.burn)
-        if res.steps_needed is not None:  # the kept half must grow to it: twice the steps
-            res.steps_needed = 2 * res.steps_needed
+        needed = d.steps_to(opt.target, len(chain))
+        res.steps_needed = None if needed is None else tc.burn + needed
     return res
+
+
+def _rule_met(kept: np.ndarray, opt: McmcOptions, diagnostics=None) -> bool:
+    """The ensemble's stopping rule (fitting.mcmc) on the kept β = 1 chain: R̂ and bulk / tail
+    ESS at their target, on a chain at least MIN_TAU_LENGTHS τ long."""
+    tau, d = diagnostics or chain_diagnostics(kept)
+    long_enough = bool(np.all(np.isfinite(tau))) and len(kept) >= MIN_TAU_LENGTHS * np.max(tau)
+    return long_enough and opt.target.met(d.rhat, d.ess_bulk, d.ess_tail)
 
 
 def default_beta_min(temperatures: int, ndim: int) -> float:
@@ -134,14 +165,16 @@ def default_beta_min(temperatures: int, ndim: int) -> float:
 
 
 def _save(store: ChainFile, tc, log_prior) -> None:
-    """The whole β = 1 chain (burn-in first) into the chain file, in emcee's layout."""
-    steps, walkers, ndim = tc.history.shape
+    """The β = 1 chain into the chain file, in emcee's layout: its kept steps after as many of the
+    burn-in's last ones, so that the file's second half is the kept chain (module docstring)."""
+    kept = len(tc.history) - tc.burn
+    first = max(tc.burn - kept, 0)
+    chain, log_like = tc.history[first:], tc.history_log_like[first:]
+    steps, walkers, ndim = chain.shape
     backend = emcee.backends.Backend()
     backend.reset(walkers, ndim)
-    backend.chain = tc.history.copy()
-    backend.log_prob = tc.history_log_like + log_prior(tc.history.reshape(-1, ndim)).reshape(
-        steps, walkers
-    )
+    backend.chain = chain.copy()
+    backend.log_prob = log_like + log_prior(chain.reshape(-1, ndim)).reshape(steps, walkers)
     backend.accepted = np.full(walkers, tc.move_acceptance * steps)
     backend.iteration = steps
     save_chain(Path(store.path), store.name, backend, store.fingerprint)

@@ -54,7 +54,11 @@ Optimum = tuple[np.ndarray, np.ndarray, float]  # (x̂, covariance, −ln p at x
 class TemperingOptions:
     temperatures: int = 8
     walkers: int = 32  # per temperature (even: the two halves of the red-blue update)
-    steps: int = 2000  # the first half adapts the ladder and is discarded
+    steps: int = 2000  # at most: the burn-in adapts the ladder and is discarded
+    #: Steps of burn-in (the ladder adapts; then frozen). None: half of ``steps``.
+    adapt_steps: int | None = None
+    #: Steps between two calls of parallel_tempering's ``stop`` (after the burn-in).
+    check_every: int = 100
     #: The hottest β: the likelihood's weight there. 1e-4 flattens a valley of 9000 nats to 1.
     beta_min: float = 1e-4
     #: Vousden et al.'s adaptation constants (their defaults: ν = 100 steps, t₀ = 1000).
@@ -92,10 +96,13 @@ def parallel_tempering(
     start: np.ndarray,
     options: TemperingOptions | None = None,
     on_step: Callable[[int], None] | None = None,
+    stop: Callable[[np.ndarray], bool] | None = None,
 ) -> TemperedChain:
     """Sample p(x) ∝ L(x) π(x). ``log_like`` and ``log_prior`` take (M, D) points and return
     (M,) values (−inf outside the prior); ``start`` is (T, W, D) or (W, D) (then every
-    temperature starts from it). ``on_step(k)`` after step k (a progress bar)."""
+    temperature starts from it). ``on_step(k)`` after step k (a progress bar); ``stop(chain)``
+    with the kept β = 1 chain so far (N, W, D), every ``check_every`` steps after the burn-in:
+    True ends the run there (a stopping rule), else it runs ``steps``."""
     opt = options or TemperingOptions()
     rng = np.random.default_rng(opt.seed)
     T, W = opt.temperatures, opt.walkers
@@ -106,12 +113,13 @@ def parallel_tempering(
     betas = np.geomspace(1.0, opt.beta_min, T) if T > 1 else np.ones(1)
     lp = log_prior(x.reshape(-1, D)).reshape(T, W)
     ll = np.where(np.isfinite(lp), log_like(x.reshape(-1, D)).reshape(T, W), -np.inf)
-    burn = opt.steps // 2
+    burn = opt.steps // 2 if opt.adapt_steps is None else min(int(opt.adapt_steps), opt.steps - 1)
     hist_x = np.empty((opt.steps, W, D))
     hist_ll = np.empty((opt.steps, W))
     swaps_tried = np.zeros(max(T - 1, 0))
     swaps_done = np.zeros(max(T - 1, 0))
     moves_done = 0
+    done = opt.steps
     for step in range(opt.steps):
         for half in (0, 1):
             moves_done += _stretch_half(x, ll, lp, betas, half, log_like, log_prior, rng)
@@ -124,13 +132,18 @@ def parallel_tempering(
             betas = _adapt_ladder(betas, accepted / W, step, opt)
         if on_step is not None:
             on_step(step)
+        kept = step + 1 - burn
+        if stop is not None and kept > 0 and kept % opt.check_every == 0:
+            if stop(hist_x[burn : step + 1]):
+                done = step + 1
+                break
     return TemperedChain(
-        history=hist_x,
-        history_log_like=hist_ll,
+        history=hist_x[:done],
+        history_log_like=hist_ll[:done],
         burn=burn,
         betas=betas,
         swap_acceptance=swaps_done / np.maximum(swaps_tried, 1),
-        move_acceptance=moves_done / (opt.steps * T * W),
+        move_acceptance=moves_done / (done * T * W),
     )
 
 
