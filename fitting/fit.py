@@ -561,27 +561,18 @@ def _run_ensembles(lik, lsq, x_lsq, opt: FitOptions, rng, h5, progress: bool, co
             coords.bounds(lo, hi),
         )
         log_like, log_prior = coords.split(lik.log_likelihood, lik.space.log_prior)
+
+    def run(store: ChainFile | None):
+        if mcmc.sampler == "tempered":
+            posterior = (log_like, log_prior)
+            return run_tempered(posterior, x0, (lo, hi), mcmc, rng=rng, scale=scale, store=store,
+                                progress=progress)  # fmt: skip
+        return run_mcmc(log_prob, x0, (lo, hi), mcmc, rng=rng, scale=scale, store=store,
+                        progress=progress)  # fmt: skip
+
     runs = [
-        (
-            run_tempered(
-                (log_like, log_prior),
-                x0,
-                (lo, hi),
-                mcmc,
-                rng=rng,
-                scale=scale,
-                store=store,
-                progress=progress,
-            )  # fmt: skip
-            if mcmc.sampler == "tempered"
-            else run_mcmc(
-                log_prob, x0, (lo, hi), mcmc, rng=rng, scale=scale, store=store, progress=progress
-            )  # fmt: skip
-        )
-        for store in (
-            None if h5 is None else ChainFile(h5, "mcmc" if e == 0 else f"mcmc_{e}", fingerprint)
-            for e in range(max(1, int(opt.ensembles)))
-        )
+        run(None if h5 is None else ChainFile(h5, "mcmc" if e == 0 else f"mcmc_{e}", fingerprint))
+        for e in range(max(1, int(opt.ensembles)))
     ]
     res = runs[0]
     if len(runs) > 1:

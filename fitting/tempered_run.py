@@ -76,8 +76,10 @@ def run_tempered(
 ) -> McmcResult:
     """Sample L(x) π(x) by parallel tempering from a ball around ``x0`` (as fitting.mcmc.run_mcmc
     places the ensemble's walkers): ``options.temperatures`` ensembles of ``options.walkers``
-    (raised to ≥ 2D + 2, even), ``options.max_steps`` steps, the first half adapting the ladder.
-    ``posterior`` = (ln L, ln π), each taking (M, D) and returning (M,)."""
+    (raised to ≥ 2D + 2, even), at most ``options.max_steps`` steps: the first half (at most
+    ADAPT_MAX) adapt the ladder, then the ensemble's stopping rule ends the run once it holds
+    (``options.time_budget_s`` and ``target_ess`` are the ensemble's only). ``posterior`` =
+    (ln L, ln π), each taking (M, D) and returning (M,)."""
     log_like, log_prior = posterior
     opt = options
     t0 = time.perf_counter()
