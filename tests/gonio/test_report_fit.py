@@ -118,3 +118,35 @@ def test_report_refuses_samples_the_fit_was_not_made_from(imported_fit, tmp_path
         write_fit_report(changed, fit, tmp_path / "other.html")
     assert "\n" not in str(e.value) and "recalibrated.parquet" in str(e.value)
     assert not (tmp_path / "other.html").exists()
+
+
+def test_report_shows_a_tempered_fits_modes(imported_fit, tmp_path) -> None:
+    """Issue 44 item 1: a tempered fit's modes and ladder (diagnostics.modes, .tempering, as
+    fitting.tempered_run writes them) are in the report, in words and as a table of each mode's
+    mass and place. The two modes here are written into the fit by hand (the report's input)."""
+    import json
+
+    from gonio.report import write_fit_report
+
+    samples, fit = imported_fit
+    doc = json.loads(fit.read_text())
+    kd = {n: 0.5 for n in doc["parameters"] if n.startswith("kd")}
+    doc["diagnostics"]["modes"] = {
+        "count": 2,
+        "masses": [0.7, 0.3],
+        "optima": [kd, {n: 0.25 for n in kd}],
+        "words": "2 modes found, 2 with ≥ 1 % of the mass: mode 1 holds 70 %; mode 2 holds 30 %",
+    }
+    doc["diagnostics"]["tempering"] = {
+        "temperatures": 8,
+        "betas": [1.0, 0.5],
+        "swap_acceptance": [0.41, 0.37],
+    }
+    tempered = tmp_path / "fit-lambert.json"
+    tempered.write_text(json.dumps(doc))
+    page = write_fit_report(samples, tempered, tmp_path / "r.html").read_text()
+    assert "Posterior modes: 2 modes found" in page
+    assert "<td>mode 2</td><td>30.0 %</td>" in page
+    assert (
+        "parallel tempering: 8 temperatures, swap acceptance between neighbours 0.41, 0.37" in page
+    )
