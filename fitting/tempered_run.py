@@ -107,6 +107,7 @@ def run_tempered(
         beta_min=float(opt.beta_min if opt.beta_min is not None else default_beta_min(temps, ndim)),
         seed=int(rng.integers(0, 2**63 - 1)),
     )
+    rule = _StoppingRule(opt)
     with Progress("MCMC (tempered)", topt.steps, enabled=progress, transient=True) as bar:
         tc = parallel_tempering(
             log_like,
@@ -114,13 +115,13 @@ def run_tempered(
             start,
             topt,
             on_step=lambda k: bar.update(completed=k + 1),
-            stop=lambda kept: _rule_met(kept, opt),
+            stop=rule,
         )
     chain = tc.chain
     log_p = tc.log_like + log_prior(chain.reshape(-1, ndim)).reshape(chain.shape[:2])
     if store is not None:
         _save(store, tc, log_prior)
-    tau, d = chain_diagnostics(chain)
+    tau, d = rule.judged(chain)
     res = McmcResult(
         chain=chain,
         log_prob=log_p,
@@ -140,7 +141,7 @@ def run_tempered(
             "swap_acceptance": tc.swap_acceptance.tolist(),
         },
     )
-    if _rule_met(chain, opt, (tau, d)):
+    if rule(chain):
         res.converged, res.stop_reason = True, "converged"
     else:
         needed = d.steps_to(opt.target, len(chain))
@@ -148,12 +149,28 @@ def run_tempered(
     return res
 
 
-def _rule_met(kept: np.ndarray, opt: McmcOptions, diagnostics=None) -> bool:
+class _StoppingRule:
     """The ensemble's stopping rule (fitting.mcmc) on the kept β = 1 chain: R̂ and bulk / tail
-    ESS at their target, on a chain at least MIN_TAU_LENGTHS τ long."""
-    tau, d = diagnostics or chain_diagnostics(kept)
-    long_enough = bool(np.all(np.isfinite(tau))) and len(kept) >= MIN_TAU_LENGTHS * np.max(tau)
-    return long_enough and opt.target.met(d.rhat, d.ess_bulk, d.ess_tail)
+    ESS at their target, on a chain at least MIN_TAU_LENGTHS τ long — ArviZ's R̂ and ESS only
+    once τ says the chain is long enough (as fitting.mcmc does), and the last chain's judged
+    so that the result does not compute them again."""
+
+    def __init__(self, opt: McmcOptions):
+        self.target = opt.target
+        self.last: tuple[int, tuple] | None = None
+
+    def judged(self, kept: np.ndarray) -> tuple[np.ndarray, object]:
+        """(τ, Diagnostics) of ``kept``."""
+        if self.last is None or self.last[0] != len(kept):
+            self.last = (len(kept), chain_diagnostics(kept))
+        return self.last[1]
+
+    def __call__(self, kept: np.ndarray) -> bool:
+        tau = np.asarray(emcee.autocorr.integrated_time(kept, tol=0), dtype=np.float64)
+        if not (np.all(np.isfinite(tau)) and len(kept) >= MIN_TAU_LENGTHS * np.max(tau)):
+            return False
+        _, d = self.judged(kept)
+        return self.target.met(d.rhat, d.ess_bulk, d.ess_tail)
 
 
 def default_beta_min(temperatures: int, ndim: int) -> float:
