@@ -454,6 +454,20 @@ def _shared_for(model, shared: Sequence[str]) -> tuple[str, ...]:
     return tuple(out)
 
 
+def shared_for(model, shared: Sequence[str], name: str) -> tuple[str, ...]:
+    """The names of `shared` that ``model`` (registered as `name`) shares across channels: m,
+    the default of every fit command, is the lobe's width where a model has one (Phong's n) and
+    nothing where it has none (a Lambertian model); any other name the model lacks is a
+    ValueError naming the model's parameters."""
+    unknown = set(shared) - set(model.parameter_names) - {"m"}
+    if unknown:
+        raise ValueError(
+            f"--shared {', '.join(sorted(unknown))}: not a parameter of {name} "
+            f"(parameters: {', '.join(model.parameter_names)})"
+        )
+    return _shared_for(model, shared)
+
+
 @dataclass(frozen=True)
 class Skipped:
     """A model ``--model all`` does not fit, and why (listed by the command and compare.json)."""
@@ -532,13 +546,7 @@ def candidates(
     out = []
     for name, opts in chosen:
         m = models.get(name, **opts)
-        sh = _shared_for(m, shared)
-        unknown = set(shared) - set(m.parameter_names) - {"m"}
-        if single and unknown:
-            raise ValueError(
-                f"--shared {', '.join(sorted(unknown))}: not a parameter of {name} "
-                f"(parameters: {', '.join(m.parameter_names)})"
-            )
+        sh = shared_for(m, shared, name) if single else _shared_for(m, shared)
         out.append(Candidate(name, name, opts, sh))
         if compare_shared and sh:
             out.append(Candidate(f"{name}-per-channel", name, opts, ()))

@@ -22,21 +22,28 @@ _OPTION = typer.Option("--option", help="Model option KEY=VALUE.")
 def _fit_options(model: str, option: list[str], shared: str, knobs: tuple[int, int, int, bool]):
     """FitOptions for a per-texel or per-table fit; mistakes are one-line UserErrors."""
     from fitting import models
+    from fitting.compare import shared_for
     from fitting.fit import FitOptions
     from fitting.texels import texel_fit_options
     from gonio.errors import UserError
 
     walkers, steps, seed, discrepancy = knobs
+    opts = kv_pairs(option, "--option")
     try:
         model = models.resolve(model)
-    except models.UnknownModelError as exc:
-        raise UserError(str(exc)) from None
+        # `--shared m`, the default, names the lobe's width: a model without one shares nothing
+        shared_names = shared_for(
+            models.get(model, **opts),
+            tuple(x.strip() for x in shared.split(",") if x.strip()),
+            model,
+        )
+    except (models.UnknownModelError, TypeError, ValueError) as exc:
+        raise UserError(str(exc).splitlines()[0]) from None
     if walkers < 2 or steps < 1:
         raise UserError("--walkers must be ≥ 2 and --steps ≥ 1")
-    shared_names = tuple(x.strip() for x in shared.split(",") if x.strip())
     base = FitOptions(
         model=model,
-        model_options=kv_pairs(option, "--option"),
+        model_options=opts,
         shared=shared_names,
         seed=seed,
         discrepancy=discrepancy,
