@@ -35,8 +35,9 @@ The correction applies y = 2 y_m / (1 + √(1 + 4 β y_m / Y)) (the exact invers
 bracket before the merge, when β differs from 0 by more than 3 σ; otherwise the response is
 called linear within what the brackets can see, and both cases are stated in the samples'
 budget with what remains (σ_β · Y at the clip). Each sample records the level at which the merge
-read it (`bend_level`), and the fit carries what remains over those levels as a nuisance
-(fitting.nuisance, ``linearity_pct``)."""
+read it (`bend_level`, from the flux of the regions around it, never its own noisy value:
+calibration.reduce._region_level), and the fit carries what remains over those levels as a
+nuisance (fitting.nuisance, ``linearity_pct``)."""
 
 from __future__ import annotations
 

@@ -44,15 +44,18 @@ marginalises it:
   divides by the lamp's irradiance: the measured f gains L_a A r² / (I_c cos θ_i) per row (r
   the lamp's distance to the row's point, I_c the channel's intensity). Added, not a factor.
 * ``linearity_pct`` (%, with the samples' ``bend_level``): the camera's bend b that calibration
-  left in (calibration.linearity: y_m = y (1 + b y / Y)), centred on 0 with the bracket
-  measurement's σ: taken out, what remains is that σ; not taken out (|β̂| < 3σ), the bend is
-  within it. Not centred on β̂ itself: β̂ comes from the same pixels as the samples, and a prior
-  centred on it counts their noise twice (over 64 ideal-rig runs, ks's error correlated −0.59
-  with β̂ and its mean moved −0.11 of a half-width; centred on 0, −0.16 and −0.03). The merged
+  left in (calibration.linearity: y_m = y (1 + b y / Y)), with the bracket measurement's σ:
+  taken out, what remains is centred on 0; not taken out (|β̂| < 3σ), the bend in the samples is
+  β̂ ± σ, and the prior is centred on β̂. (Centred on 0 instead, a straight camera's intervals
+  held the bend's σ around a bend the samples do not have: over the simulated coverage test's
+  60 repeats ks's error/half-width had sd 0.79 and its 68 % interval covered 0.80; centred on
+  β̂, sd 0.97 and 0.68, and over 256 repeats 0.69 / 0.93 for ks's 68 % / 95 %, error/half-width
+  mean −0.04, sd 1.02 — tests/fitting/test_coverage_sim.py.) The merged
   flux moves by the factor 1 + b · level, level the fraction of the clip at which the merge
-  read the sample (calibration.linearity.bend_level): a factor per row. A correction decided
-  by the 3σ test and not carried had moved ks and m by 4–8 of their σ in the 3 of 256
-  ideal-rig runs where noise alone passed the test.
+  read the sample (calibration.linearity.bend_level), read from the neighbouring regions'
+  flux, never the sample's own (calibration.reduce._region_level says why): a factor per row.
+  A correction decided by the 3σ test and not carried had moved ks and m by 4–8 of their σ in
+  the 3 of 256 ideal-rig runs where noise alone passed the test.
 * With the light's direction, the irradiance calibration divided by moves too: the measured f
   is the BRDF at the true directions times cos θ_i(true) / cos θ_i(recorded)
   (fitting.likelihood).
@@ -216,8 +219,10 @@ def shared_errors(
         bend = comp.get("measured")
         is_bend = str(comp.get("component", "")).startswith("linearity")
         if levels and is_bend and isinstance(bend, dict) and bend.get("sigma"):
-            # what the brackets left of the bend, within their σ (module docstring)
+            # the bend the samples hold: β̂ ± σ left in, 0 ± σ once taken out (module docstring)
             angles["linearity_pct"] = 100.0 * float(bend["sigma"])
+            if not bend.get("corrected"):
+                centers["linearity_pct"] = 100.0 * float(bend["beta"])
             carried.append(str(comp.get("component")))
         if positions and comp.get("ambient_sigma_W_m2_sr") and comp.get("intensity_W_sr"):
             angles["ambient_mW"] = 1e3 * float(comp["ambient_sigma_W_m2_sr"])
