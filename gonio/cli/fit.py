@@ -262,6 +262,8 @@ def _checked_fit_args(table, model: str, fix, priors, cand_args, mcmc_args):
         raise UserError(f"--likelihood {likelihood!r}: use one of {', '.join(LIKELIHOOD_KINDS)}")
     if walkers < 2 or steps < 1:
         raise UserError("--walkers must be ≥ 2 and --steps ≥ 1")
+    if time_budget is not None and not 0 < time_budget < 1e7:
+        raise UserError(f"--time-budget {time_budget}: give seconds > 0 (or leave it out)")
     if sampler not in SAMPLERS:
         raise UserError(f"--sampler {sampler!r}: use one of {', '.join(SAMPLERS)}")
     if not 1 <= temperatures <= 64:

@@ -314,6 +314,7 @@ def write_runs(work: Path) -> None:
     _sql(r, "UPDATE captures SET frame_path = '/etc/passwd'")
     r = variant("manifest_exposure_zero", exr)
     _sql(r, "UPDATE captures SET exposure_s = 0")
+    variant("bin_px_huge", exr)  # a good run: the bad input is calibrate's --bin-px
     r = variant("frame_sha256_differs", exr)  # a frame changed or swapped since capture
     _sql(r, "UPDATE captures SET sha256 = '00' || substr(sha256, 3)")
 
@@ -424,6 +425,7 @@ def write_samples(work: Path) -> None:
     pq.write_table(pa.table(cols), d / "angle_as_text.parquet")
     # A good table: the bad input is the command's --fix.
     shutil.copy(good, d / "fix_outside_range.parquet")
+    shutil.copy(good, d / "time_budget_negative.parquet")  # the bad input: --time-budget
 
 
 # -- study CSVs ------------------------------------------------------------------------------
