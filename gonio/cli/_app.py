@@ -229,10 +229,13 @@ class _Console(Console):
         Console.size.fset(self, new_size)
 
 
-out = _Console()
+# Never parsed for markup: what gonio prints carries paths, run and material names, channel names
+# and device replies, which are data ("teflon[v2]" would print as "teflon", "[bold red]R" as a
+# red "R", "[/dev/ttyUSB0]" is a closing tag that crashed a command). Styling is rich Text's.
+out = _Console(markup=False)
 
 
-err = _Console(stderr=True)
+err = _Console(stderr=True, markup=False)
 
 
 _DEBUG = {"on": False}

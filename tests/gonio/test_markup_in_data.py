@@ -50,3 +50,35 @@ def test_printable_escapes_controls_and_keeps_text() -> None:
     assert printable("a\tb") == "a\tb"
     assert printable("\x1b[31mred\x1b[0m\r\n") == "\\x1b[31mred\\x1b[0m\\x0d\\x0a"
     assert printable("\x9b") == "\\x9b" and printable("é [/x]") == "é [/x]"
+
+
+def test_fit_prints_folder_and_channel_names_as_written(tmp_path: Path) -> None:
+    """Issue 47: an output named `teflon[v2]/…` printed as `teflon/…` and a channel named
+    `[bold red]R` came out mangled — every console of the CLI is now markup-free. A Lambertian
+    table (Mitsuba's diffuse BSDF) whose channels carry markup, in a folder whose name does,
+    through `gonio fit` and `gonio report`: every name is printed as written."""
+    import numpy as np
+
+    from brdfdata.directions import spherical_to_vector
+    from brdfdata.samples import write_samples
+    from simulator.scene import DiffuseMaterial
+    from simulator.truth import direct_samples
+
+    ti, to = np.meshgrid(np.radians([10.0, 30.0, 50.0]), np.radians([5.0, 25.0, 45.0, 65.0]))
+    wi = spherical_to_vector(ti.ravel(), np.zeros(ti.size))
+    wo = spherical_to_vector(to.ravel(), np.full(to.size, np.pi))
+    table, _ = direct_samples(DiffuseMaterial(reflectance=(0.5, 0.5, 0.5)), wi, wo, rng=1)
+    names = {"R": "[bold red]R", "G": "[/G]", "B": "B"}
+    table.channel = np.array([names[c] for c in table.channel], dtype=object)
+    folder = tmp_path / "teflon[v2]"
+    folder.mkdir()
+    write_samples(folder / "samples.parquet", table)
+
+    fit = _gonio("fit", str(folder / "samples.parquet"), "--model", "lambert", "--no-mcmc",
+                 cwd=tmp_path)  # fmt: skip
+    assert fit.returncode == 0, fit.stderr
+    assert "kd_[bold red]R" in fit.stdout and "kd_[/G]" in fit.stdout, fit.stdout
+    report = _gonio("report", "--samples", str(folder / "samples.parquet"),
+                    "--fit", str(folder / "fit-lambert.json"), cwd=tmp_path)  # fmt: skip
+    assert report.returncode == 0, report.stderr
+    assert report.stdout.strip() == str(folder / "report.html"), report.stdout
