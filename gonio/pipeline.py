@@ -118,6 +118,25 @@ def _check_resume_rig(out: Path, frozen: RigConfig, given: RigConfig | Path | st
         )
 
 
+def _check_resume_plan(out: Path, frozen: PlanConfig, given: PlanConfig | Path | str | None):
+    """A run resumes with the plan it started with (frozen in its run.toml): a --plan that
+    differs from it would be ignored without a word, so it is refused; the same plan, or none,
+    resumes."""
+    if given is None:
+        return
+    plan = given if isinstance(given, PlanConfig) else load_plan(given)
+    theirs, ours = frozen.model_dump(), plan.model_dump()
+    if theirs == ours:
+        return
+    key = next(k for k in theirs if theirs.get(k) != ours.get(k))
+    source = given if not isinstance(given, PlanConfig) else "the plan given"
+    raise UserError(
+        f"{out}: the run's plan differs from {source} in {key} (run: {theirs[key]!r}, plan "
+        f"file: {ours[key]!r}); a run resumes with the plan it started with — leave --plan out "
+        "to resume it, or start that plan in a new --out directory"
+    )
+
+
 def acquire(out: Path | str, spec: AcquireSpec | None = None) -> AcquireResult:
     """Start a run in `out`, or resume it when `out` holds an incomplete run.
 
@@ -141,6 +160,7 @@ def acquire(out: Path | str, spec: AcquireSpec | None = None) -> AcquireResult:
         rig, plan_cfg, scene = frozen.rig, frozen.plan, frozen.scene
         try:
             _check_resume_rig(out, rig, spec.rig)
+            _check_resume_plan(out, plan_cfg, spec.plan)
         except BaseException:
             store.close()
             raise

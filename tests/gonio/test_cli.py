@@ -104,6 +104,33 @@ def test_acquire_bad_config_is_one_line(tmp_path: Path) -> None:
     assert not (tmp_path / "r").exists()  # nothing half-written
 
 
+def test_resume_with_another_plan_is_refused_in_one_line(tmp_path: Path) -> None:
+    """A run resumes with the plan frozen in its run.toml; a different --plan was ignored
+    without a word (issue 47), so it is refused in one line naming the first difference, while
+    the same plan file resumes. A small plan on the simulated rig (one exposure); the finished
+    run is made an interrupted one by removing its "complete" status from the manifest."""
+    plans = Path(__file__).resolve().parents[2] / "configs" / "plans"
+    rig = str(Path(__file__).resolve().parents[2] / "configs" / "rigs" / "sim.toml")
+    plan = tmp_path / "small.toml"
+    plan.write_text(
+        'name = "small"\ntype = "isotropic"\ntheta_i_deg = [30.0]\ntheta_o_deg = [20.0, 40.0]\n'
+        "delta_phi_deg = [180.0]\nexposures_s = [0.004]\n"
+    )
+    first = run("acquire", "--rig", rig, "--plan", str(plan), "--out", str(tmp_path / "r"),
+                "--no-progress", "--yes")  # fmt: skip
+    assert first.returncode == 0, first.stderr
+    import sqlite3  # a run killed before it finished: its status is not "complete" (stand-in)
+
+    with sqlite3.connect(tmp_path / "r" / "manifest.sqlite") as db:
+        db.execute("DELETE FROM meta WHERE key IN ('status', 'completed_at')")
+    line = assert_one_line_error(run("acquire", "--rig", rig, "--plan", str(plans / "demo.toml"),
+                                     "--out", str(tmp_path / "r"), "--yes"))  # fmt: skip
+    assert "the run's plan differs from" in line and "demo.toml" in line, line
+    assert "leave --plan out" in line, line
+    again = run("acquire", "--rig", rig, "--plan", str(plan), "--out", str(tmp_path / "r"), "--yes")
+    assert again.returncode == 0, again.stderr
+
+
 def test_models_lists_parameters() -> None:
     res = run("models")
     assert res.returncode == 0
