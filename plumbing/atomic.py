@@ -10,10 +10,14 @@ that means to replace a file it owns says so with `overwrite=True` (then `os.rep
 Never replaced, with or without `overwrite`: a symlink (the move would put a regular file in
 place of the link) and anything that is not a regular file (a device, a FIFO, a directory,
 a socket) — the write is refused before a byte is written (`NotARegularFile`).
+
+A writer killed mid-write (kill -9, a power cut) leaves its temp file `.NAME.tmp-PID` behind; the
+next write of NAME removes those whose process is gone, and says so on the log (stderr).
 """
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -72,6 +76,35 @@ def fsync_dir(path: str | os.PathLike) -> None:
         os.close(fd)
 
 
+def _remove_stale_temps(path: Path) -> None:
+    """Remove `.NAME.tmp-PID` files beside `path` whose writer PID no longer runs (a temp file of
+    a live process, this one's included, is its writer's to finish or remove)."""
+    prefix = f".{path.name}.tmp-"
+    try:
+        candidates = [p for p in path.parent.iterdir() if p.name.startswith(prefix)]
+    except OSError:
+        return
+    for tmp in candidates:
+        pid = tmp.name[len(prefix) :]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+            continue  # alive (or not ours to signal): its writer may still finish it
+        except ProcessLookupError:
+            pass
+        except (PermissionError, OverflowError, ValueError):
+            continue
+        try:
+            tmp.unlink()
+        except OSError:
+            continue
+        logging.getLogger("gonio").warning(
+            f"removed {tmp}: the temp file of a writer (pid {pid}) that was killed before it "
+            "finished"
+        )
+
+
 def atomic_write_with(
     path: str | os.PathLike, write: Callable[[BinaryIO], None], *, overwrite: bool = False
 ) -> Path:
@@ -79,6 +112,7 @@ def atomic_write_with(
     `os.link` (FileExistsError if `path` exists), or with `overwrite=True` by `os.replace`."""
     path = Path(path)
     _refuse_special(path)
+    _remove_stale_temps(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         with open(tmp, "wb") as fh:

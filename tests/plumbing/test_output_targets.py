@@ -67,3 +67,22 @@ def test_atomic_write_refuses_special_targets(tmp_path: Path, overwrite: bool) -
             atomic_write_bytes(path, b"new", overwrite=overwrite)
     assert target.read_bytes() == b"kept"
     assert not list(tmp_path.glob(".*.tmp-*"))  # nothing half-written left behind
+
+
+def test_a_killed_writers_temp_file_is_removed_by_the_next_write(tmp_path: Path, caplog) -> None:
+    """Issue 47: a killed `calibrate` left `.samples.parquet.tmp-PID` forever. A real process
+    that has exited stands for the killed writer (its PID is then free); the next write of the
+    same file removes its temp file and says so, and leaves a live process's temp file alone."""
+    import logging
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    stale = tmp_path / f".samples.parquet.tmp-{int(dead.stdout)}"
+    stale.write_bytes(b"half a table")
+    live = tmp_path / f".samples.parquet.tmp-{os.getppid()}"
+    live.write_bytes(b"another writer's")
+    with caplog.at_level(logging.WARNING, logger="gonio"):
+        atomic_write_bytes(tmp_path / "samples.parquet", b"whole")
+    assert not stale.exists() and live.exists()
+    assert (tmp_path / "samples.parquet").read_bytes() == b"whole"
+    assert any(str(stale) in r.getMessage() for r in caplog.records), caplog.text
