@@ -20,7 +20,7 @@ from plumbing.config import (
     format_validation_error,
     load_config_data,
 )
-from plumbing.inputs import MiB, read_input_text
+from plumbing.inputs import MiB, check_nesting, read_input_text
 
 __all__ = [
     "AxisConfig",
@@ -766,7 +766,9 @@ def load_rig(path: Path | str) -> RigConfig:
 
 def _read_json(file: str | Path, where: str, what: str) -> dict:
     try:
-        doc = json.loads(read_input_text(file, f"{what} JSON file", 16 * MiB))
+        text = read_input_text(file, f"{what} JSON file", 16 * MiB)
+        check_nesting(text, file, f"{what} JSON file")
+        doc = json.loads(text)
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ConfigError(f"{where}{file}: not a readable {what} JSON file ({exc})") from None
     if not isinstance(doc, dict):

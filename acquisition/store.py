@@ -33,7 +33,7 @@ from typing import Any
 from plumbing.atomic import atomic_write_bytes
 from plumbing.errors import UserError
 from plumbing.hashing import sha256_file
-from plumbing.inputs import MiB, open_input
+from plumbing.inputs import MiB, NotAnInputFile, check_nesting, open_input
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -440,11 +440,15 @@ class RunStore:
         path = self.root / "run.toml"
         try:
             with open_input(path, "run.toml", 16 * MiB) as fh:
-                doc = tomllib.load(fh)
+                text = fh.read().decode("utf-8")
+            check_nesting(text, path, "run.toml")
+            doc = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise RunStoreError(
                 f"{path}: damaged, not valid TOML ({exc}); restore it from a backup"
             ) from None
+        except NotAnInputFile as exc:
+            raise RunStoreError(str(exc)) from None
         except (OSError, UnicodeDecodeError) as exc:
             raise RunStoreError(f"{path}: cannot read ({exc})") from None
         version = doc.get("schema_version", doc.get("gonio", {}).get("schema_version"))

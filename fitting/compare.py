@@ -41,7 +41,7 @@ import numpy as np
 
 from brdfdata.coverage import coverage_report
 from plumbing.atomic import atomic_write_bytes
-from plumbing.inputs import MiB, read_input_text
+from plumbing.inputs import MiB, check_nesting, read_input_text
 
 __all__ = [
     "COMPARE_SCHEMA_VERSION",
@@ -425,7 +425,9 @@ def read_compare(path: str | os.PathLike) -> tuple[list[dict], list[Skipped]]:
     not one; a schema-1 file has no "skipped")."""
     path = Path(path)
     try:
-        doc = json.loads(read_input_text(path, "compare.json", 256 * MiB))
+        text = read_input_text(path, "compare.json", 256 * MiB)
+        check_nesting(text, path, "compare.json")
+        doc = json.loads(text)
         rows = doc["models"]
         skipped = [Skipped(str(r["model"]), str(r["reason"])) for r in doc.get("skipped", [])]
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:

@@ -53,7 +53,7 @@ from pathlib import Path
 
 from plumbing.atomic import atomic_write_bytes
 from plumbing.errors import UserError
-from plumbing.inputs import MiB, read_input_text
+from plumbing.inputs import MiB, check_nesting, read_input_text
 
 __all__ = [
     "FIT_SCHEMA_VERSION",
@@ -186,7 +186,9 @@ def read_fit(path: str | os.PathLike) -> FitResult:
     """Read and validate ``fit-<model>.json``."""
     path = Path(path)
     try:
-        d = json.loads(read_input_text(path, "fit result", 256 * MiB))
+        text = read_input_text(path, "fit result", 256 * MiB)
+        check_nesting(text, path, "fit result")
+        d = json.loads(text)
     except FileNotFoundError:
         raise FitResultError(f"{path}: no such fit result") from None
     except json.JSONDecodeError as exc:

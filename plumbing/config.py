@@ -17,7 +17,7 @@ from typing import TypeVar
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from plumbing.errors import UserError
-from plumbing.inputs import MiB, open_input
+from plumbing.inputs import MiB, NotAnInputFile, check_nesting, open_input
 
 __all__ = [
     "ConfigError",
@@ -173,16 +173,20 @@ def load_config_data(path: Path | str) -> dict:
         )
     try:
         with open_input(path, "config file", 16 * MiB) as fh:
-            if path.suffix.lower() == ".json":
-                data = json.load(fh)
-                if not isinstance(data, dict):
-                    raise ConfigError(f"{path}: a JSON config must be an object {{...}}")
-                return data
-            return tomllib.load(fh)
+            text = fh.read().decode("utf-8")
+        check_nesting(text, path, "config file")
+        if path.suffix.lower() == ".json":
+            data = json.loads(text)
+            if not isinstance(data, dict):
+                raise ConfigError(f"{path}: a JSON config must be an object {{...}}")
+            return data
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
     except json.JSONDecodeError as exc:
         raise ConfigError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except NotAnInputFile as exc:
+        raise ConfigError(str(exc)) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read ({exc})") from None
 

@@ -11,6 +11,7 @@ between cannot block the open) and checked again on the open descriptor.
 from __future__ import annotations
 
 import os
+import re
 import stat
 from pathlib import Path
 from typing import BinaryIO
@@ -23,6 +24,8 @@ __all__ = [
     "read_input_bytes",
     "read_input_text",
     "check_input",
+    "check_nesting",
+    "MAX_NESTING",
     "MiB",
     "GiB",
     "FRAME_MAX_BYTES",
@@ -35,6 +38,14 @@ GiB = 1 << 30
 FRAME_MAX_BYTES = 4 * GiB
 # Measured data from elsewhere (RGL .bsdf, CSV tables): the largest RGL files are ~100 MB.
 DATA_MAX_BYTES = 2 * GiB
+
+
+#: The deepest nesting of brackets and braces a JSON or TOML input may have. gonio's own files
+#: nest a few levels; Python's parsers recurse once per level and overflow the stack near 1000
+#: (a RecursionError, not a one-line error), so a deeper file is refused before it is parsed.
+MAX_NESTING = 100
+
+_NOT_A_BRACKET = re.compile(r"[^\[\]{}]+")
 
 
 class NotAnInputFile(UserError, OSError):
@@ -103,3 +114,18 @@ def check_input(path: str | os.PathLike, what: str, max_bytes: int | None = None
     rawpy, OpenEXR); returns it."""
     open_input(path, what, max_bytes).close()
     return Path(path)
+
+
+def check_nesting(text: str, path: str | os.PathLike, what: str) -> None:
+    """Refuse, in one line, a JSON or TOML `text` nested deeper than MAX_NESTING. Brackets in
+    strings count too: the bound is far above any real file's depth either way."""
+    depth = deepest = 0
+    for ch in _NOT_A_BRACKET.sub("", text):
+        depth = depth + 1 if ch in "[{" else max(depth - 1, 0)
+        if depth > deepest:
+            deepest = depth
+            if deepest > MAX_NESTING:
+                raise NotAnInputFile(
+                    f"{path}: nested more than {MAX_NESTING} levels deep; not a {what} gonio "
+                    "writes or reads — check that it is the right file"
+                )

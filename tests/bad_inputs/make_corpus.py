@@ -155,6 +155,8 @@ CONFIGS: dict[str, str] = {
 }
 # Rich markup in a value, which the error line must show as written (an unknown URL scheme:
 # no device is opened).
+# Nested 5000 deep (Python's parsers recurse per level: a RecursionError, not an error line).
+CONFIGS["rig_deep_nesting.toml"] = "x = " + "[" * 5000 + "]" * 5000 + "\n"
 CONFIGS["rig_markup_in_url.toml"] = _edit(
     CONFIGS["rig_absent_port.toml"],
     "/dev/ttyUSB-gonio-corpus-absent",
@@ -356,6 +358,9 @@ def write_runs(work: Path) -> None:
     (r / "fit-lambert.h5").unlink()
     text = (r / "fit-lambert.json").read_text()
     (r / "fit-lambert.json").write_text(_edit(text, '"schema_version": 1', '"schema_version": 99'))
+    r = variant("fit_json_deep", fitted)
+    (r / "fit-lambert.h5").unlink()
+    (r / "fit-lambert.json").write_text('{"parameters": ' + "[" * 5000 + "]" * 5000 + "}")
     r = variant("fit_json_nan", fitted)
     (r / "fit-lambert.h5").unlink()
     doc = json.loads((r / "fit-lambert.json").read_text())
