@@ -317,8 +317,14 @@ class RunStore:
         store = cls._connect(root, create=False, writable=writable)
         try:
             version = store.meta("schema_version")
-            if version is None or not version.isdigit():
+            if version is None:
                 raise RunStoreError(f"{root}/manifest.sqlite: no schema version; not a gonio run")
+            if not re.fullmatch(r"[0-9]{1,9}", str(version)):  # "²" passes isdigit, not int()
+                raise RunStoreError(
+                    f"{root}/manifest.sqlite: schema version {version!r} is not a whole number "
+                    "as gonio writes it; not a manifest of this gonio (a newer one, or another "
+                    "tool, wrote it)"
+                )
             if int(version) > SCHEMA_VERSION:
                 raise RunStoreError(_newer(f"{root}/manifest.sqlite", version))
             if writable and store.complete and not calibration_only:

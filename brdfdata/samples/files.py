@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn
@@ -273,6 +274,12 @@ def read_samples(path: str | os.PathLike, *, merge_duplicates: bool = False) -> 
 
 def check_columns(names: list[str], path: Path) -> None:
     """Refuse a table without every required column (one line)."""
+    twice = sorted({c for c in names if names.count(c) > 1})
+    if twice:
+        raise SamplesError(
+            f"{path}: column {twice[0]!r} appears more than once; a samples table names each "
+            "column once — re-create it with `gonio calibrate RUN` or `gonio import`"
+        )
     missing = [c for c in REQUIRED_COLUMNS if c not in names]
     if missing:
         raise SamplesError(
@@ -290,9 +297,22 @@ def table_from_arrow(
     brdfdata.samples.guards. Raises SamplesError."""
     check_columns(arrow.column_names, path)
     raw_meta = arrow.schema.metadata or {}
-    meta = {k.decode(): v.decode() for k, v in raw_meta.items() if not k.startswith(b"ARROW")}
+    try:
+        meta = {k.decode(): v.decode() for k, v in raw_meta.items() if not k.startswith(b"ARROW")}
+    except UnicodeDecodeError:
+        raise SamplesError(
+            f"{path}: its metadata is not UTF-8 text, so not a samples table gonio or pyarrow "
+            "wrote — re-create it with `gonio calibrate RUN` or `gonio import`"
+        ) from None
     version = meta.get("gonio.schema_version")
-    if version is not None and version.isdigit() and int(version) > SCHEMA_VERSION:
+    if version is not None and not re.fullmatch(r"[0-9]{1,9}", version):
+        # "²" passes str.isdigit and fails int(); "2.0" is no version this gonio writes
+        raise SamplesError(
+            f"{path}: samples schema version {version!r} is not a whole number as gonio writes "
+            f"it (this one reads up to {SCHEMA_VERSION}); a newer gonio or another tool wrote "
+            "it — upgrade gonio, or re-create the table with `gonio calibrate` or `gonio import`"
+        )
+    if version is not None and int(version) > SCHEMA_VERSION:
         raise SamplesError(
             f"{path}: samples schema version {version} was written by a newer gonio (this one "
             f"reads up to {SCHEMA_VERSION}); upgrade gonio"

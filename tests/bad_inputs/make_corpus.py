@@ -307,6 +307,8 @@ def write_runs(work: Path) -> None:
     _truncate(r / "manifest.sqlite", 0.3)
     r = variant("manifest_newer", exr)
     _sql(r, "UPDATE meta SET value = '99' WHERE key = 'schema_version'")
+    r = variant("manifest_schema_superscript", exr)
+    _sql(r, "UPDATE meta SET value = '²' WHERE key = 'schema_version'")
     r = variant("runtoml_newer", exr)
     text = (r / "run.toml").read_text()
     (r / "run.toml").write_text(_edit(text, "schema_version = 2", "schema_version = 99"))
@@ -422,6 +424,13 @@ def write_samples(work: Path) -> None:
     pq.write_table(pa.table(cols), d / "partial_inf_angle.parquet")
     t = pa.table(_table(40, 7)).replace_schema_metadata({"gonio.schema_version": "99"})
     pq.write_table(t, d / "newer_schema.parquet")
+    for name, version in (("schema_superscript", "²"), ("schema_not_whole", "2.0")):
+        t = pa.table(_table(40, 7)).replace_schema_metadata({"gonio.schema_version": version})
+        pq.write_table(t, d / f"{name}.parquet")
+    t = pa.table(_table(40, 7)).replace_schema_metadata({b"gonio.note": b"\xff\xfe latin-1"})
+    pq.write_table(t, d / "metadata_not_utf8.parquet")
+    t = pa.table(_table(40, 7))
+    pq.write_table(t.append_column("f", t.column("f")), d / "duplicate_column.parquet")
     cols = _table(40, 8)
     del cols["sigma"]
     pq.write_table(pa.table(cols), d / "missing_column.parquet")
