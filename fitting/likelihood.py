@@ -70,13 +70,20 @@ from brdfdata.samples import DARK_SNR, SampleTable, row_kinds
 from fitting.likelihood_kernels import gauss_discrepancy_sum
 from fitting.nuisance import ANGLE_NUISANCES, arm_deltas, arm_rows, measured_geometry, to_si
 from fitting.priors import ParameterSpace
+from plumbing.errors import UserError
 
 __all__ = [
+    "NoUsableSamples",
     "ChannelData",
     "Likelihood",
     "LIKELIHOOD_KINDS",
     "F32_LNL_LIMIT",
 ]
+
+
+class NoUsableSamples(UserError, ValueError):
+    """A table with no row a fit can use (every row masked, below the horizon or not finite)."""
+
 
 LIKELIHOOD_KINDS = ("gaussian", "student-t")
 
@@ -235,8 +242,9 @@ class Likelihood:
                 _ambient_rows(d, shared.ambient_intensity)
         self.n = int(sum(d.f.size for d in self.data))
         if self.n == 0:
-            raise ValueError(
-                "no usable samples to fit (after removing flagged and non-finite rows)"
+            raise NoUsableSamples(
+                "no usable samples to fit: every row is flagged MASKED or BELOW_HORIZON, or not "
+                "finite — check the table's flags column (gonio calibrate sets it)"
             )
         self._f_ref: list[np.ndarray] | None = None  # discrepancy reference f̃, per channel
         self._lamp_cone = _lamp_cone(table.metadata)  # the lamp disk's angular radius, or None

@@ -115,10 +115,15 @@ def fit(
         binned_source=samples if "gonio.binned" in table.metadata else None,
         widen_for_mismatch=not no_widen,
     )
+    from fitting.likelihood import NoUsableSamples
+
     setups = _check_setups(table, cands, base, compare_shared, priors)
     _show_flag_counts(table, chans, drop_flagged)
     dest = Path(out_dir or samples.parent)
-    _run_fits(table, (base, setups, skipped), cands, (compare_shared, accept_poor_fit), dest)
+    try:
+        _run_fits(table, (base, setups, skipped), cands, (compare_shared, accept_poor_fit), dest)
+    except NoUsableSamples as exc:  # the table's own rows: name it
+        raise UserError(f"{samples}: {exc}") from None
 
 
 def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):

@@ -431,6 +431,9 @@ def write_samples(work: Path) -> None:
     pq.write_table(t, d / "metadata_not_utf8.parquet")
     t = pa.table(_table(40, 7))
     pq.write_table(t.append_column("f", t.column("f")), d / "duplicate_column.parquet")
+    cols = _table(40, 10)
+    cols["flags"] = np.full(40, 8, dtype=np.int32)  # every row MASKED
+    pq.write_table(pa.table(cols), d / "all_masked.parquet")
     cols = _table(40, 8)
     del cols["sigma"]
     pq.write_table(pa.table(cols), d / "missing_column.parquet")
