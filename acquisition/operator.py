@@ -125,7 +125,13 @@ def load_answers(path: Path | str) -> dict[str, bool]:
     if extra:
         raise ConfigError(f"{path}: unknown key {sorted(extra)[0]!r} (use [answers] and default)")
     out: dict[str, bool] = {}
-    items = dict(data.get("answers", {}))
+    table = data.get("answers", {})
+    if not isinstance(table, dict):
+        raise ConfigError(
+            f"{path}: answers must be a table of steps ([answers] with step = \"yes\" or "
+            f"\"no\"), not {type(table).__name__} {table!r:.40}"
+        )
+    items = dict(table)
     if "default" in data:
         items["*"] = data["default"]
     for key, value in items.items():

@@ -155,6 +155,8 @@ CONFIGS: dict[str, str] = {
 }
 # Rich markup in a value, which the error line must show as written (an unknown URL scheme:
 # no device is opened).
+# An answers file whose answers are a string, not a table of steps.
+CONFIGS["answers_not_a_table.toml"] = 'answers = "yes"\n'
 # Nested 5000 deep (Python's parsers recurse per level: a RecursionError, not an error line).
 CONFIGS["rig_deep_nesting.toml"] = "x = " + "[" * 5000 + "]" * 5000 + "\n"
 CONFIGS["rig_markup_in_url.toml"] = _edit(
