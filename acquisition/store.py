@@ -69,6 +69,10 @@ def _real(v) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
 
+#: The sections of run.toml gonio writes, each a table (acquisition.run_document).
+_RUN_TOML_SECTIONS = ("gonio", "rig", "plan", "camera", "camera_device", "sample", "scene")
+
+
 class RunStoreError(UserError, RuntimeError):
     """A run directory cannot be used as asked. One-line message."""
 
@@ -457,6 +461,12 @@ class RunStore:
             raise RunStoreError(str(exc)) from None
         except (OSError, UnicodeDecodeError) as exc:
             raise RunStoreError(f"{path}: cannot read ({exc})") from None
+        for key, value in doc.items():  # gonio's sections are tables
+            if key in _RUN_TOML_SECTIONS and not isinstance(value, dict):
+                raise RunStoreError(
+                    f"{path}: {key}: expected a table ([{key}]), not {type(value).__name__} "
+                    f"{value!r:.40}; not a run.toml gonio wrote — restore it from a backup"
+                )
         version = doc.get("schema_version", doc.get("gonio", {}).get("schema_version"))
         if version is not None:
             if not isinstance(version, int) or isinstance(version, bool):
