@@ -128,8 +128,8 @@ def load_answers(path: Path | str) -> dict[str, bool]:
     table = data.get("answers", {})
     if not isinstance(table, dict):
         raise ConfigError(
-            f"{path}: answers must be a table of steps ([answers] with step = \"yes\" or "
-            f"\"no\"), not {type(table).__name__} {table!r:.40}"
+            f'{path}: answers must be a table of steps ([answers] with step = "yes" or '
+            f'"no"), not {type(table).__name__} {table!r:.40}'
         )
     items = dict(table)
     if "default" in data:
