@@ -26,6 +26,9 @@ _ENVIRONMENT = {
     errno.EPERM: "check the file's permissions, or write elsewhere",
     errno.ENOSPC: "free some space and run the command again",
     errno.EDQUOT: "free some space within your quota and run the command again",
+    # an --out that is, or sits under, a regular file
+    errno.ENOTDIR: "a part of that path is a file, not a folder; choose another path (--out)",
+    errno.EEXIST: "gonio does not replace it; choose another path (--out)",
 }
 
 
@@ -83,8 +86,9 @@ def main() -> None:
             _say(f"error: {msg}\n")
             sys.exit(2)
         if isinstance(exc, OSError) and exc.errno in _ENVIRONMENT:
-            # The machine, not gonio, refused (read-only medium, permissions, full disk): the
-            # user can fix that, so it is one line naming the file, not an internal error.
+            # The machine, not gonio, refused (read-only medium, permissions, full disk, a
+            # file where a folder belongs): the user can fix that, so it is one line naming
+            # the file, not an internal error.
             where = f"{exc.filename}: " if exc.filename else ""
             _say(f"error: {where}{exc.strerror}; {_ENVIRONMENT[exc.errno]}\n")
             sys.exit(2)

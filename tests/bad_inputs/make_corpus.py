@@ -449,6 +449,7 @@ def write_samples(work: Path) -> None:
     # A good table: the bad input is the command's --fix.
     shutil.copy(good, d / "fix_outside_range.parquet")
     shutil.copy(good, d / "time_budget_negative.parquet")  # the bad input: --time-budget
+    shutil.copy(good, d / "out_under_a_file.parquet")  # the bad input: --out under this file
 
 
 # -- study CSVs ------------------------------------------------------------------------------
