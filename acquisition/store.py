@@ -92,10 +92,33 @@ def _unreadable(db: Path, exc: Exception) -> str:
             f"{db}: in use by another process (the database stayed locked for "
             f"{BUSY_TIMEOUT_S:.0f} s); try again when it has finished"
         )
+    code = (getattr(exc, "sqlite_errorcode", None) or 0) & 0xFF
+    if _no_space(db.parent):
+        # SQLite needs a few kB beside the file to open it (its -shm): a full disk is not damage
+        return (
+            f"{db}: no space left on the device ({exc}); free some space and run the command "
+            "again — the manifest is not known to be damaged: do not replace it"
+        )
+    if code in (sqlite3.SQLITE_IOERR, sqlite3.SQLITE_FULL, sqlite3.SQLITE_CANTOPEN):
+        return (
+            f"{db}: the disk refused to read or write it ({exc}); check the medium (full, "
+            "read-only, failing) and run the command again — the manifest is not known to be "
+            "damaged: do not replace it"
+        )
     return (
         f"{db}: unreadable, damaged or not an SQLite manifest ({exc}); restore it from a "
         "backup (frames/ is untouched)"
     )
+
+
+def _no_space(folder: Path) -> bool:
+    """Whether the file system of `folder` has (almost) no space left for an unprivileged
+    writer: less than 64 KiB."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < 64 * 1024
 
 
 def _busy(exc: sqlite3.OperationalError) -> bool:
