@@ -6,6 +6,7 @@ measured by other instruments can be fitted too.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -31,7 +32,7 @@ from brdfdata.samples.table import (
 from brdfdata.sniff import sniff_format
 from plumbing.atomic import atomic_write_with
 from plumbing.hashing import sha256_file
-from plumbing.inputs import check_input
+from plumbing.inputs import DATA_MAX_BYTES, check_input, read_input_bytes
 
 __all__ = [
     "read_samples",
@@ -258,17 +259,27 @@ def read_samples(path: str | os.PathLike, *, merge_duplicates: bool = False) -> 
     below-horizon rows, σ ≤ 0, unflagged f < 0, duplicated rows — the latter merged instead
     when ``merge_duplicates``)."""
     path = Path(path)
-    parquet = open_samples_file(path)
+    open_samples_file(path).close()  # missing, a directory, a FIFO, another format: one line
+    # The bytes hashed are the bytes parsed (a fit records this hash, and a report compares
+    # it): hashing the file again after reading it let a file changed in between pass.
+    data = read_input_bytes(path, "samples table", DATA_MAX_BYTES)
+    sha = hashlib.sha256(data).hexdigest()
     try:
-        arrow = parquet.read()
+        arrow = pq.ParquetFile(pa.BufferReader(data)).read()
     except Exception as exc:  # a damaged column chunk behind a readable footer
         _not_parquet(path, exc)
+    del data
     table = table_from_arrow(arrow, path, merge_duplicates=merge_duplicates)
     del arrow
     # Arrow's allocator keeps the freed read buffers for reuse (≈ 60 B per row): hand them
     # back, since a fit's later peaks come from numpy, not Arrow.
     pa.default_memory_pool().release_unused()
-    table.source_sha256 = sha256_file(path)
+    if sha256_file(path) != sha:
+        raise SamplesError(
+            f"{path}: changed while gonio read it (another program is writing it); run the "
+            "command again when that has finished"
+        )
+    table.source_sha256 = sha
     return table
 
 

@@ -97,3 +97,34 @@ def test_a_bend_level_the_fit_cannot_use_is_refused_in_one_line(tmp_path, bad) -
         pq.write_table(marked.append_column("bend_level", level), tmp_path / "marked.parquet")
         with pytest.raises(SamplesError, match="column 'bend_level' holds .* in row 1"):
             read_samples(tmp_path / "marked.parquet")
+
+
+def test_the_hash_is_of_the_bytes_read_and_a_file_changed_meanwhile_is_refused(
+    tmp_path, monkeypatch
+) -> None:
+    """Issue 47: the table's SHA-256 (which a fit records and a report compares) was taken by a
+    second read after the first, so a file rewritten in between passed with the new file's hash
+    on the old file's values. Now the hash is of the bytes parsed, and a file whose bytes differ
+    once the read is over is refused in one line. The other writer is a stand-in (its timing
+    cannot be made deterministic): it rewrites the file right after gonio's read returns."""
+    import brdfdata.samples.files as files
+    from plumbing.hashing import sha256_file
+
+    path = tmp_path / "s.parquet"
+    pq.write_table(_valid(tmp_path / "x.parquet"), path)
+    assert read_samples(path).source_sha256 == sha256_file(path)
+    changed = _valid(tmp_path / "y.parquet")
+    changed = changed.set_column(
+        changed.column_names.index("f"), "f", pa.array(np.asarray(changed["f"]) * 1.5)
+    )
+    real_read = files.read_input_bytes
+
+    def read_then_rewritten(*args, **kwargs):
+        data = real_read(*args, **kwargs)
+        pq.write_table(changed, path)  # the other program's write lands now
+        return data
+
+    monkeypatch.setattr(files, "read_input_bytes", read_then_rewritten)
+    with pytest.raises(SamplesError, match="changed while gonio read it") as e:
+        read_samples(path)
+    assert "\n" not in str(e.value) and "s.parquet" in str(e.value)
