@@ -57,7 +57,13 @@ class AxisConfig(Strict):
     role: AxisRole
     id: int = Field(ge=0, le=252, description="Dynamixel ID")
     model: Literal["XM430-W350", "XL430-W250"] = "XM430-W350"
-    gear_ratio: float = Field(1.0, gt=0, description="servo turns per axis turn")
+    gear_ratio: float = Field(
+        1.0,
+        ge=0.01,
+        le=1000,
+        description="servo turns per axis turn (an arm's belt or gear reduction is 1 to ~100; "
+        "beyond 1000 one servo tick moves the axis less than the servo can resolve)",
+    )
     zero_offset_deg: float = Field(0.0, ge=-360, le=360, description="axis angle at servo tick 0")
     direction: Literal[1, -1] = 1
     min_deg: float = Field(ge=-360, le=360)
@@ -110,10 +116,19 @@ class LightConfig(Strict):
     scpi: ScpiConfig | None = Field(None, description='[light.scpi]: backend "scpi" settings')
     baudrate: int = Field(9600, description="serial speed of the light controller")
     level: float = Field(1.0, gt=0, le=1, description="relative intensity used for the run")
-    intensity_W_sr: tuple[float, float, float] | None = Field(
+    intensity_W_sr: (
+        tuple[
+            Annotated[float, Field(gt=0, le=1e4)],
+            Annotated[float, Field(gt=0, le=1e4)],
+            Annotated[float, Field(gt=0, le=1e4)],
+        ]
+        | None
+    ) = Field(
         None,
         description="radiant intensity per channel (R, G, B) at level 1, W/sr, from the "
-        "source's calibration certificate; without it results are relative",
+        "source's calibration certificate; without it results are relative (a lamp has a "
+        "positive intensity; 1e4 W/sr is beyond any source a gonioreflectometer aims at a "
+        "sample)",
     )
     intensity_rel_sigma: float | None = Field(
         None,

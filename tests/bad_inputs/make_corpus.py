@@ -102,6 +102,14 @@ CONFIGS: dict[str, str] = {
     "rig_mm_value.toml": RIG_OK + "[geometry]\nlight_distance_m = 500\n",
     "rig_angle_out_of_range.toml": _edit(RIG_OK, "max_deg = 179.9", "max_deg = 400.0"),
     "rig_duplicate_id.toml": _edit(RIG_OK, "id = 4", "id = 2"),
+    "rig_negative_intensity.toml": _edit(
+        RIG_OK,
+        'url = "lightsim://corpus"',
+        'url = "lightsim://corpus"\nintensity_W_sr = [-1.0, 1.0, 1.0]',
+    ),
+    "rig_gear_ratio_huge.toml": _edit(
+        RIG_OK, "max_deg = 88.0", "max_deg = 88.0\ngear_ratio = 1e300"
+    ),
     "rig_missing_port.toml": _edit(RIG_OK, 'url = "dxlsim://corpus"\n', ""),
     "rig_absent_port.toml": _edit(
         _edit(
