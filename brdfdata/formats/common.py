@@ -12,6 +12,7 @@ Provenance keys (strings, in the Parquet key-value metadata):
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -121,6 +122,9 @@ def provenance(path: str | os.PathLike, fmt: str, conversion: dict) -> dict[str,
 
 #: Grid axes a user may give (degrees at the edge, docs/design.md §3); φ_i defaults to 0.
 GRID_AXES = ("theta_i", "phi_i", "theta_o", "phi_o")
+#: The most direction pairs a --grid may ask for: MERL's own table is 1.46 M cells, and 2·10⁷
+#: rows are ~1.2 GB of samples before a fit starts; a 1e-5° step asked for ~10¹⁹.
+GRID_MAX_PAIRS = 20_000_000
 
 
 def parse_grid(text: str) -> dict[str, np.ndarray]:
@@ -139,20 +143,34 @@ def parse_grid(text: str) -> dict[str, np.ndarray]:
         try:
             if ":" in spec:
                 start, stop, step = (float(x) for x in spec.split(":"))
-                if not step > 0 or stop < start:
+                if not step > 0 or stop < start or not np.isfinite(stop - start):
                     raise ValueError
-                values = np.arange(start, stop + 1e-9 * max(1.0, abs(stop)), step)
+                count = (stop - start) / step + 1
             else:
                 values = np.array([float(x) for x in spec.split("/")])
+                count = values.size
         except ValueError:
             raise FormatError(
                 f"--grid {part!r}: START:STOP:STEP needs numbers with STEP > 0 and STOP ≥ START"
             ) from None
+        if count > GRID_MAX_PAIRS:
+            raise FormatError(
+                f"--grid {part!r}: {count:.3g} values on one axis; a grid holds at most "
+                f"{GRID_MAX_PAIRS:,} direction pairs — use a coarser step"
+            )
+        if ":" in spec:
+            values = np.arange(start, stop + 1e-9 * max(1.0, abs(stop)), step)
         axes[key] = np.radians(values)
     missing = [a for a in ("theta_i", "theta_o", "phi_o") if a not in axes]
     if missing:
         raise FormatError(f"--grid: missing {', '.join(missing)} (degrees, e.g. theta_o=0:80:5)")
     axes.setdefault("phi_i", np.zeros(1))
+    pairs = math.prod(int(v.size) for v in axes.values())
+    if pairs > GRID_MAX_PAIRS:
+        raise FormatError(
+            f"--grid: {pairs:,} direction pairs; a grid holds at most {GRID_MAX_PAIRS:,} (each "
+            "a row per channel) — use a coarser step"
+        )
     for key in ("theta_i", "theta_o"):
         if np.any(axes[key] < 0) or np.any(axes[key] > np.pi / 2 + 1e-12):
             raise FormatError(f"--grid {key}: angles must lie in [0, 90] deg")

@@ -254,3 +254,18 @@ def test_measured_directions_reproduce_the_table_nodes() -> None:
     # Float64 round trip through two quadratic CDF solves: exact to ~1e-15 except where a
     # row's density nearly vanishes (dx/dCDF = 1/density amplifies rounding there).
     assert np.median(off) < 1e-14 and np.percentile(off, 99) < 1e-10 and off.max() < 1e-6
+
+
+@pytest.mark.parametrize(
+    "grid",
+    [
+        "theta_i=0:60:1e-5,theta_o=0:80:5,phi_o=0:180:30",  # 6·10⁶ × 17 × 7 pairs
+        "theta_i=0:1e300:1,theta_o=0:80:5,phi_o=0:180:30",  # one axis alone too long
+    ],
+)
+def test_a_grid_too_fine_to_hold_is_refused_before_any_allocation(grid) -> None:
+    """Issue 47: `import merl --grid` with a 1e-5° step asked for ~10¹⁹ cells and died inside
+    numpy. A grid holds at most GRID_MAX_PAIRS pairs (2·10⁷ rows per channel: ~1.2 GB of
+    samples; MERL's own table is 1.46 M cells): beyond, one line before anything is built."""
+    with pytest.raises(FormatError, match="a grid holds at most 20,000,000"):
+        parse_grid(grid)
