@@ -338,6 +338,8 @@ def table_from_arrow(
         # numbers are strings was written by something that did not mean them as numbers.
         if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
             raise SamplesError(f"{path}: column {name!r} is not {dtype.__name__} but text; {fix}")
+        if pa.types.is_boolean(column.type):  # True/False would be fitted as 1/0 sr⁻¹
+            raise SamplesError(f"{path}: column {name!r} is boolean, not {dtype.__name__}; {fix}")
         try:
             return np.asarray(column.to_numpy(zero_copy_only=False), dtype=dtype)
         except (TypeError, ValueError, pa.ArrowInvalid):

@@ -25,7 +25,8 @@ anything):
    ``merge_duplicates``, which
    replaces each group by one sample with the inverse-variance mean f = Σ(f/σ²)/Σ(1/σ²) and the
    combined σ = (Σ 1/σ²)^(−1/2). For a Gaussian likelihood that sample carries exactly the
-   information of the group, so fits of the merged table equal fits of the group.
+   information of the group, so fits of the merged table equal fits of the group;
+7. |f| or σ exceeds ``F_MAX_SR`` = 10⁸ sr⁻¹, beyond any measured BRDF: a unit or format error.
 
 Tolerance: θ may exceed π/2 (or fall below 0) by ``ANGLE_SLACK_RAD`` = 1e-9 rad, room for the
 rounding of an angle computed from a unit vector (≈1e-16 rad) with a wide margin, far below any
@@ -50,6 +51,10 @@ __all__ = [
 ]
 
 ANGLE_SLACK_RAD = 1e-9
+#: The largest |f| or σ a measured row may hold (guard 7): a mirror-like peak seen through a
+#: lamp of a few mm at half a metre reads ~10³–10⁴ sr⁻¹; 10⁸ leaves four orders of margin and
+#: keeps f² and the χ² sums far from overflow (1e308 was fitted).
+F_MAX_SR = 1e8
 NEGATIVE_Z_MIN = 5.0
 
 
@@ -122,6 +127,16 @@ def _check_good_rows(t: SampleTable, source: str) -> None:
             raise GuardError(
                 f"{source}: column {name}: {int(bad.sum())} row(s) with NaN or inf (first: row "
                 f"{_first(bad)}) and flags = 0; drop them or set their flags (e.g. 8 = masked)"
+            )
+    for name in ("f", "sigma"):
+        v = getattr(t, name)
+        huge = good & (np.abs(v) > F_MAX_SR)
+        if huge.any():
+            i = _first(huge)
+            raise GuardError(
+                f"{source}: column {name}: {int(huge.sum())} row(s) beyond ±{F_MAX_SR:.0e} sr^-1 "
+                f"(first: row {i}, {v[i]:.4g}), more than any measured BRDF holds: a unit or "
+                "format error; fix the column or set those rows' flags (e.g. 8 = masked)"
             )
     bad = good & ~(t.sigma > 0)
     if bad.any():

@@ -445,6 +445,12 @@ def write_samples(work: Path) -> None:
     pq.write_table(t, d / "metadata_not_utf8.parquet")
     t = pa.table(_table(40, 7))
     pq.write_table(t.append_column("f", t.column("f")), d / "duplicate_column.parquet")
+    cols = _table(40, 11)
+    cols["f"][5] = 1e308  # fitted before: f² overflows
+    pq.write_table(pa.table(cols), d / "f_huge.parquet")
+    cols = _table(40, 12)
+    cols["f"] = cols["f"] > 0.1  # True/False, read as 1/0 sr⁻¹ before
+    pq.write_table(pa.table(cols), d / "f_boolean.parquet")
     cols = _table(40, 10)
     cols["flags"] = np.full(40, 8, dtype=np.int32)  # every row MASKED
     pq.write_table(pa.table(cols), d / "all_masked.parquet")
