@@ -316,6 +316,7 @@ def export_fit(fmt: str, source: str | os.PathLike, out: str | os.PathLike, angl
     from brdfdata.formats import merl
     from brdfdata.formats.common import FormatError
     from brdfdata.formats.convert import check_export
+    from brdfdata.samples.guards import F_MAX_SR
     from fitting.result import read_fit
 
     source, out = Path(source), Path(out)
@@ -325,7 +326,16 @@ def export_fit(fmt: str, source: str | os.PathLike, out: str | os.PathLike, angl
     if angles != "rad":
         raise FormatError("--angles applies to csv only (MERL bins are angles by definition)")
     fit = read_fit(source)
-    merl.write_merl(out, merl.tabulate(fit_evaluator(fit)))
+    with np.errstate(over="ignore", invalid="ignore"):  # judged below, in one line
+        table = merl.tabulate(fit_evaluator(fit))
+    raw = table.raw[table.raw >= 0]
+    if not np.all(np.isfinite(table.raw)) or (raw.size and raw.max() * max(merl.SCALES) > F_MAX_SR):
+        # a fit read back with parameters no measurement gives (kd = 1e308 wrote inf)
+        raise FormatError(
+            f"{source}: its parameters give f beyond {F_MAX_SR:.0e} sr^-1 or not finite at some "
+            "MERL bin; not a fit of a measured material — refit it"
+        )
+    merl.write_merl(out, table)
     n = int(np.sum(merl.read_merl(out).raw[0] >= 0))
     opts = json.dumps(fit.options, sort_keys=True)
     return out, f"{fit.model} {opts} tabulated at {n} bin centres (medians)"

@@ -377,6 +377,11 @@ def write_runs(work: Path) -> None:
     r = variant("fit_json_deep", fitted)
     (r / "fit-lambert.h5").unlink()
     (r / "fit-lambert.json").write_text('{"parameters": ' + "[" * 5000 + "]" * 5000 + "}")
+    r = variant("fit_json_huge", fitted)
+    (r / "fit-lambert.h5").unlink()
+    doc = json.loads((r / "fit-lambert.json").read_text())
+    doc["parameters"]["kd_R"]["median"] = 1e308  # exported as a MERL file of inf before
+    (r / "fit-lambert.json").write_text(json.dumps(doc, indent=2))
     r = variant("fit_json_nan", fitted)
     (r / "fit-lambert.h5").unlink()
     doc = json.loads((r / "fit-lambert.json").read_text())
