@@ -9,9 +9,12 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from brdfdata.formats.common import FormatError, parse_grid, parse_sigma
 from brdfdata.samples import SampleTable
 from brdfdata.samples.guards import check_samples
+from brdfdata.samples.table import EXCLUDING
 from plumbing.inputs import DATA_MAX_BYTES, check_input
 
 __all__ = [
@@ -100,6 +103,12 @@ def import_samples(fmt: str, path: str | os.PathLike, options: ImportOptions) ->
             delimiter=options.delimiter,
         )
         table = read_csv_table(path, csv_opts)
+    if not np.any((np.asarray(table.flags, np.int64) & EXCLUDING) == 0):
+        # an RGL file whose VNDF is all zero became an empty table, and exit 0
+        raise FormatError(
+            f"{path}: no measured value in it ({len(table)} rows, every one excluded); not a "
+            f"{fmt} file of a measurement — check that it is the right file"
+        )
     return check_samples(table, str(path), merge_duplicates_rows=options.merge_duplicates)
 
 

@@ -54,9 +54,20 @@ def _stderr_copy() -> int | None:
 _STDERR_FD = _stderr_copy()
 
 
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:
+    """A warning as one line, its message's first (Python appends the library's source line)."""
+    text = str(message).strip()
+    return f"warning: {text.splitlines()[0] if text else category.__name__}\n"
+
+
 def main() -> None:
     """Entry point: user mistakes print one line (no traceback) and exit 2."""
     warnings.filterwarnings("ignore", category=FutureWarning)
+    # numpy's floating-point warnings (0/0 in a file's values, overflow) are not the user's to
+    # read: what matters is said in words (a verdict, a one-line error). Other warnings print
+    # as one line, without the library source line Python appends.
+    warnings.filterwarnings("ignore", category=RuntimeWarning)
+    warnings.formatwarning = _one_line_warning
     from gonio.errors import user_error_types
 
     debug = "--debug" in sys.argv[1:] or os.environ.get("GONIO_DEBUG") == "1"

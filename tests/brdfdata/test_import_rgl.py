@@ -269,3 +269,16 @@ def test_a_grid_too_fine_to_hold_is_refused_before_any_allocation(grid) -> None:
     samples; MERL's own table is 1.46 M cells): beyond, one line before anything is built."""
     with pytest.raises(FormatError, match="a grid holds at most 20,000,000"):
         parse_grid(grid)
+
+
+def test_an_rgl_file_whose_vndf_is_all_zero_is_refused_in_one_line(tmp_path) -> None:
+    """Issue 47: an RGL file whose VNDF is all zero (every value then 0/0) became an empty
+    table and exit 0. Refused now: a file with no measured value is not a measurement."""
+    from brdfdata.formats.convert import ImportOptions, import_samples
+
+    fields = dict(read_tensor_file(data_file("rgl_brdf/paper_white_rgb.bsdf")))
+    fields["vndf"] = np.zeros_like(np.asarray(fields["vndf"]))
+    write_tensor_file(tmp_path / "zero.bsdf", fields)
+    with pytest.raises(FormatError, match="no measured value in it") as exc:
+        import_samples("rgl", tmp_path / "zero.bsdf", ImportOptions(grid="measured"))
+    assert "\n" not in str(exc.value) and "zero.bsdf" in str(exc.value)
