@@ -59,6 +59,11 @@ def texel_fit_options(
     return opt.with_mcmc(walkers=walkers, max_steps=steps, time_budget_s=None)
 
 
+#: The most texels a per-texel fit maps: a 2048 × 2048 map per parameter (EXR and PNG), ~16 MB a
+#: map; beyond, the maps alone are gigabytes.
+MAX_TEXELS = 2048 * 2048
+
+
 def texel_groups(table: SampleTable) -> dict[int, np.ndarray]:
     """Row indices of each texel (texel index → sorted int64 array); rows with texel < 0 (off
     the grid) are left out. SamplesError when the table has no `texel` column."""
@@ -68,6 +73,19 @@ def texel_groups(table: SampleTable) -> dict[int, np.ndarray]:
             "`gonio calibrate RUN --per-texel MM`"
         )
     texel = np.asarray(table.extra["texel"], dtype=np.int64)
+    n_x, n_y = texel_grid(table)
+    if n_x * n_y > MAX_TEXELS:  # one id of 2·10⁹ fitted, then asked for 14.9 GiB of maps
+        raise SamplesError(
+            f"the texel grid is {n_x} × {n_y} (largest texel id {int(texel.max())}); the maps "
+            f"hold at most {MAX_TEXELS:,} texels (2048 × 2048) — check the texel column"
+        )
+    off = texel >= n_x * n_y
+    if off.any():  # such a texel was fitted and then vanished from the maps
+        raise SamplesError(
+            f"texel {int(texel[off][0])} lies off the table's {n_x} × {n_y} grid "
+            f"({int(off.sum())} rows); fix the texel column, or re-create the table with "
+            "`gonio calibrate RUN --per-texel MM`"
+        )
     order = np.argsort(texel, kind="stable")
     keys, starts = np.unique(texel[order], return_index=True)
     bounds = list(starts[1:]) + [texel.size]

@@ -289,8 +289,18 @@ def test_fit_texels_command_says_in_one_line_what_is_wrong(tmp_path, samples) ->
     plain = read_samples(samples[0])
     plain.extra.pop("texel")
     no_texel = write_samples(tmp_path / "plain.parquet", plain)
+    # issue 47: a texel off the stated 5 × 5 grid vanished from the maps; one id of 2·10⁹ in a
+    # table without a grid was fitted, then asked for 14.9 GiB of maps
+    stray = read_samples(samples[0])
+    stray.extra["texel"] = np.asarray(stray.extra["texel"]).copy()
+    stray.extra["texel"][0] = 2_000_000_000
+    off_grid = write_samples(tmp_path / "off_grid.parquet", stray)
+    stray.metadata = {k: v for k, v in stray.metadata.items() if k != "gonio.texels"}
+    no_grid = write_samples(tmp_path / "no_grid.parquet", stray)
     gonio = [sys.executable, "-m", "gonio.cli", "fit-texels"]
     for args, message in (
+        ([str(off_grid)], "texel 2000000000 lies off the table's 5 × 5 grid"),
+        ([str(no_grid)], "the maps hold at most 4,194,304 texels"),
         ([str(no_texel)], "no texel column"),
         ([str(tmp_path / "missing.parquet")], "no such file"),
         ([str(samples[0]), "--scheduler", "localhost:8786"], "not a Dask scheduler address"),
