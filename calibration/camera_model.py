@@ -31,6 +31,7 @@ import numpy as np
 
 from plumbing.atomic import atomic_write_bytes
 from plumbing.errors import UserError
+from plumbing.inputs import FRAME_MAX_BYTES, read_input_bytes
 
 __all__ = [
     "BoardSpec",
@@ -206,14 +207,18 @@ def load_gray8(path: Path | str) -> np.ndarray | None:
     contrast only, and OpenCV's ArUco detector rejects anything but 8-bit.
     """
     # imdecode on the bytes rather than imread: a missing file is an OSError here instead of
-    # an OpenCV log line on stderr, and both end as "unreadable".
+    # an OpenCV log line on stderr, and both end as "unreadable". Read through plumbing.inputs:
+    # a FIFO among the images waited forever for a writer, a device never ended.
     try:
-        data = np.fromfile(str(path), dtype=np.uint8)
+        data = np.frombuffer(read_input_bytes(path, "image", FRAME_MAX_BYTES), dtype=np.uint8)
     except OSError:
         return None
     if data.size == 0:
         return None
-    img = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    try:  # OpenCV refuses an image whose header declares more than 2³⁰ pixels (cv2.error)
+        img = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    except cv2.error:
+        return None
     if img is None or img.size == 0:
         return None
     return to_gray8(img)

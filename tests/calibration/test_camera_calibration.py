@@ -179,6 +179,32 @@ def test_unreadable_image_is_skipped_with_a_counted_warning(tmp_path):
     assert set(json.loads(json.dumps(res))) == set(RESULT_KEYS)
 
 
+def test_a_fifo_and_a_bomb_among_the_images_are_skipped_not_waited_on(tmp_path):
+    """Issue 47: a FIFO among calibrate-camera's images waited forever for a writer, and a PNG
+    whose header declares 10⁵ × 10⁵ pixels was an internal error (OpenCV's assertion). Both
+    are now unreadable images, skipped and counted, and the views calibrate as before."""
+    import os
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        crc = struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+        return struct.pack(">I", len(data)) + kind + data + crc
+
+    paths = sorted(data_dir("calibration_chessboard").glob("left*.jpg"))[:4]
+    fifo = tmp_path / "fifo.jpg"
+    os.mkfifo(fifo)
+    bomb = tmp_path / "bomb.png"
+    header = struct.pack(">IIBBBBB", 100_000, 100_000, 8, 0, 0, 0, 0)
+    idat = chunk(b"IDAT", zlib.compress(b"\0" * 1000))
+    bomb.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + idat + chunk(b"IEND", b""))
+    with pytest.warns(UserWarning, match=r"skipped 2 of 6 images"):
+        res = calibrate_images([*paths, fifo, bomb], parse_board("chessboard:9x6:0.025"))
+    assert res["views_used"] == [p.name for p in paths]
+    unreadable = "unreadable image"
+    assert sorted(res.skipped) == [("bomb.png", unreadable), ("fifo.jpg", unreadable)]
+
+
 def test_fewer_than_three_views_is_a_one_line_error(tmp_path):
     paths = sorted(data_dir("calibration_chessboard").glob("left*.jpg"))[:2]
     blank = tmp_path / "blank.png"
