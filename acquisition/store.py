@@ -427,15 +427,27 @@ class RunStore:
 
     def _rel_path(self, rel: str, capture_id: int) -> Path:
         """`rel` as a path inside the run directory; anything else means a tampered manifest."""
+        where = f"{self.root}/manifest.sqlite: capture {capture_id} frame_path {rel!r:.80}"
+        if not isinstance(rel, str) or "\0" in rel or len(rel) > 1024:
+            # a NUL byte or 5000 characters failed inside open() (ValueError, ENAMETOOLONG)
+            raise RunStoreError(
+                f"{where} is not a frame path gonio writes (frames/NAME, no NUL byte, under "
+                "1024 characters); refusing to read this run (the manifest was edited or damaged)"
+            )
         p = Path(rel)
-        where = f"{self.root}/manifest.sqlite: capture {capture_id} frame_path {rel!r}"
         if p.is_absolute() or ".." in p.parts or not p.parts:
             raise RunStoreError(
                 f"{where} is not a path inside the run directory; refusing to read this run "
                 "(the manifest was edited or damaged)"
             )
         full = self.root / p
-        if not full.resolve().is_relative_to(self.root.resolve()):
+        try:
+            resolved = full.resolve()
+        except (RuntimeError, OSError):  # a link to itself: Python 3.11 raises RuntimeError
+            raise RunStoreError(
+                f"{where} is a symbolic link that loops; refusing to read it (the run was edited)"
+            ) from None
+        if not resolved.is_relative_to(self.root.resolve()):
             raise RunStoreError(
                 f"{where} resolves outside the run directory (symlink); refusing to read it"
             )

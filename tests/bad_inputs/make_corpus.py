@@ -328,6 +328,8 @@ def write_runs(work: Path) -> None:
     (r / "run.toml").write_text(text[:start] + 'gonio = "0+corpus"\n\n' + text[end:])
     r = variant("frame_path_escape", exr)
     _sql(r, "UPDATE captures SET frame_path = '../../etc/passwd'")
+    r = variant("frame_path_nul", exr)  # open() raised ValueError: embedded null byte
+    _sql(r, "UPDATE captures SET frame_path = 'frames/p00000' || char(0) || '_b00.exr'")
     r = variant("frame_path_absolute", exr)
     _sql(r, "UPDATE captures SET frame_path = '/etc/passwd'")
     r = variant("manifest_exposure_zero", exr)

@@ -495,3 +495,18 @@ def test_report_escapes_every_user_string(tmp_path: Path) -> None:
     assert "run <b onclick=x>'\"&" in text
     # And in the source every '<' of them is an entity.
     assert EVIL not in html and "&lt;script&gt;" in html
+
+
+def test_a_frame_symlinked_to_itself_is_refused_in_one_line(tmp_path: Path) -> None:
+    """Issue 47: a frame that is a symbolic link to itself made Path.resolve raise RuntimeError
+    (Python 3.11: "Symlink loop"), an internal error of `calibrate` and `runs show`."""
+    run = _tiny_run(tmp_path / "run")
+    (frame,) = (run / "frames").iterdir()
+    frame.unlink()
+    frame.symlink_to(frame.name)
+    store = RunStore.open(run)
+    try:
+        with pytest.raises(RunStoreError, match="is a symbolic link that loops"):
+            store.verify()
+    finally:
+        store.close()
