@@ -21,6 +21,7 @@ them back with the same layout, so read → write reproduces a published file by
 
 from __future__ import annotations
 
+import math
 import os
 import struct
 from pathlib import Path
@@ -86,7 +87,9 @@ def read_tensor_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
             pos += 8 * ndim
             if code not in _DTYPES:
                 raise FormatError(f"{path}: field {name!r} has unknown dtype code {code}")
-            count = int(np.prod(shape, dtype=np.int64))
+            # Python's integers: an int64 product of a hostile shape wrapped round (to a small
+            # or negative count) and reached numpy as an internal error
+            count = math.prod(int(n) for n in shape)
             dt = np.dtype(_DTYPES[code])
             if offset + count * dt.itemsize > len(data):
                 raise FormatError(f"{path}: field {name!r} runs past the end (truncated file?)")

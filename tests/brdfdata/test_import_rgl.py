@@ -282,3 +282,15 @@ def test_an_rgl_file_whose_vndf_is_all_zero_is_refused_in_one_line(tmp_path) -> 
     with pytest.raises(FormatError, match="no measured value in it") as exc:
         import_samples("rgl", tmp_path / "zero.bsdf", ImportOptions(grid="measured"))
     assert "\n" not in str(exc.value) and "zero.bsdf" in str(exc.value)
+
+
+def test_a_declared_shape_that_overflows_is_refused_in_one_line(tmp_path) -> None:
+    """Issue 47: an RGL field declaring shape (2⁶², 4) made numpy's int64 product wrap to 0 and
+    the reshape fail inside numpy (an internal error). The size is counted in Python integers."""
+    import struct
+
+    data = bytearray(tensor_file_bytes({"x": np.zeros((2, 3), np.float32)}))
+    struct.pack_into("<2Q", data, 32, 2**62, 4)  # the shape, after magic, version, count, name
+    (tmp_path / "overflow.bsdf").write_bytes(bytes(data))
+    with pytest.raises(FormatError, match="field 'x' runs past the end"):
+        read_tensor_file(tmp_path / "overflow.bsdf")
