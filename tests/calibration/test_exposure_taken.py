@@ -21,7 +21,6 @@ from acquisition.operator import AutoOperator
 from acquisition.store import CalibrationRecord, CaptureRecord
 from calibration.reduce import ReduceOptions, reduce_run
 from fitting.fit import FitOptions, fit_samples
-from fitting.mcmc import McmcOptions
 from gonio.pipeline import AcquireSpec, acquire
 from simulator.scene import load_scene
 from tests.support.effect_runs import paired_rows
@@ -93,14 +92,19 @@ def test_calibration_uses_the_exposure_each_frame_had(runs, monkeypatch) -> None
 
 
 def test_a_fit_of_the_quantised_run_equals_the_exact_runs(runs) -> None:
+    """The estimates compared are the fits' maxima (least squares, the Laplace sd): the same
+    data up to DN rounding give them to a tenth of their sd. Not the MCMC medians: two chains
+    on data this close decorrelate, and their medians differed by 0.12 sd on kd (same seed;
+    maxima 0.001 sd apart) — the chains' Monte Carlo error, not calibration's. The control's
+    2 % in f would move kd by about 100 sd."""
     opt = FitOptions(model="torrance-sparrow", channels=["G"], n_starts=2, seed=3,
                      model_options={"fresnel": "none", "shadowing": "smith-rational"},
-                     mcmc=McmcOptions(walkers=24, max_steps=1500))  # fmt: skip
+                     mcmc=None)  # fmt: skip
     exact, quantised = (fit_samples(_reduce(r), opt).parameters for r in runs)
     for name in ("kd_G", "ks_G", "m"):
         sd = (exact[name]["p84"] - exact[name]["p16"]) / 2
         # The same data up to DN rounding: the estimates agree to a tenth of their sd.
-        assert abs(quantised[name]["median"] - exact[name]["median"]) < 0.1 * sd, name
+        assert abs(quantised[name]["map"] - exact[name]["map"]) < 0.1 * sd, name
 
 
 def test_the_simulated_sensor_takes_whole_line_periods_or_the_nearest_shutter_speed() -> None:
