@@ -111,6 +111,15 @@ def _unreadable(db: Path, exc: Exception) -> str:
     )
 
 
+def _utf8_text(raw: bytes) -> str:
+    """A TEXT value of the manifest: gonio writes UTF-8; other bytes are a damaged manifest
+    (an error SQLite's readers turn into one line), not a UnicodeDecodeError."""
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise sqlite3.DataError("a text value is not UTF-8") from None
+
+
 def _no_space(folder: Path) -> bool:
     """Whether the file system of `folder` has (almost) no space left for an unprivileged
     writer: less than 64 KiB."""
@@ -361,7 +370,7 @@ class RunStore:
                 store._db.executescript(_CALIBRATION_SCHEMA)
                 if int(version) < SCHEMA_VERSION:
                     store.set_meta("schema_version", str(SCHEMA_VERSION))
-        except sqlite3.DatabaseError as exc:  # locked past the busy timeout, or damaged
+        except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:  # locked, or damaged
             store.close()
             raise RunStoreError(_unreadable(root / "manifest.sqlite", exc)) from None
         except BaseException:
@@ -376,6 +385,7 @@ class RunStore:
             conn = cls._sqlite(db, read_only=not (create or writable))
         except sqlite3.Error as exc:
             raise RunStoreError(f"{db}: cannot open ({exc})") from None
+        conn.text_factory = _utf8_text
         try:
             if create or writable:
                 conn.execute("PRAGMA journal_mode=WAL")
@@ -392,7 +402,7 @@ class RunStore:
                     raise RunStoreError(
                         f"{db}: not a gonio manifest (no table {sorted(missing)[0]!r})"
                     )
-        except sqlite3.Error as exc:
+        except (sqlite3.Error, UnicodeDecodeError) as exc:
             conn.close()
             raise RunStoreError(_unreadable(db, exc)) from None
         conn.isolation_level = "DEFERRED"
@@ -422,7 +432,7 @@ class RunStore:
         """Translate SQLite failures (a damaged or truncated manifest) into one-line errors."""
         try:
             yield
-        except sqlite3.DatabaseError as exc:
+        except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:
             raise RunStoreError(_unreadable(self.root / "manifest.sqlite", exc)) from None
 
     def _rel_path(self, rel: str, capture_id: int) -> Path:
