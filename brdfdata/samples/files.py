@@ -299,14 +299,8 @@ def check_columns(names: list[str], path: Path) -> None:
         )
 
 
-def table_from_arrow(
-    arrow: pa.Table, path: Path, *, merge_duplicates: bool = False, guards: bool = True
-) -> SampleTable:
-    """The validated SampleTable of an Arrow table read from ``path`` (whole, or one batch of a
-    streamed read, fitting.binning): columns, schema version, finiteness, flags, channel names
-    and — unless ``guards`` is False, for a rereading of rows already checked — the guards of
-    brdfdata.samples.guards. Raises SamplesError."""
-    check_columns(arrow.column_names, path)
+def _checked_metadata(arrow: pa.Table, path: Path) -> dict[str, str]:
+    """The table's own metadata as text, its schema version checked (one line otherwise)."""
     raw_meta = arrow.schema.metadata or {}
     try:
         meta = {k.decode(): v.decode() for k, v in raw_meta.items() if not k.startswith(b"ARROW")}
@@ -328,6 +322,18 @@ def table_from_arrow(
             f"{path}: samples schema version {version} was written by a newer gonio (this one "
             f"reads up to {SCHEMA_VERSION}); upgrade gonio"
         )
+    return meta
+
+
+def table_from_arrow(
+    arrow: pa.Table, path: Path, *, merge_duplicates: bool = False, guards: bool = True
+) -> SampleTable:
+    """The validated SampleTable of an Arrow table read from ``path`` (whole, or one batch of a
+    streamed read, fitting.binning): columns, schema version, finiteness, flags, channel names
+    and — unless ``guards`` is False, for a rereading of rows already checked — the guards of
+    brdfdata.samples.guards. Raises SamplesError."""
+    check_columns(arrow.column_names, path)
+    meta = _checked_metadata(arrow, path)
     if arrow.num_rows == 0:
         raise SamplesError(f"{path}: the samples table is empty")
 

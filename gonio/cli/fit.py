@@ -115,20 +115,18 @@ def fit(
         binned_source=samples if "gonio.binned" in table.metadata else None,
         widen_for_mismatch=not no_widen,
     )
-    from fitting.likelihood import NoUsableSamples
-
     setups = _check_setups(table, cands, base, compare_shared, priors)
     _show_flag_counts(table, chans, drop_flagged)
     dest = Path(out_dir or samples.parent)
-    try:
-        _run_fits(table, (base, setups, skipped), cands, (compare_shared, accept_poor_fit), dest)
-    except NoUsableSamples as exc:  # the table's own rows: name it
-        raise UserError(f"{samples}: {exc}") from None
+    _run_fits(table, (base, setups, skipped), cands, (compare_shared, accept_poor_fit), dest)
 
 
 def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):
     """The samples table, binned (streamed) when asked or when it is large; one line says so."""
+    import numpy as np
+
     from brdfdata.samples import read_samples
+    from brdfdata.samples.table import EXCLUDING
     from fitting.binning import AUTO_BIN_DEG, AUTO_BIN_ROWS, BinOptions, read_binned, rows_in
     from gonio.errors import UserError
 
@@ -137,11 +135,15 @@ def _read_for_fit(samples: Path, bin_deg: float | None, merge_duplicates: bool):
     if bin_deg is None:
         bin_deg = AUTO_BIN_DEG if rows_in(samples) > AUTO_BIN_ROWS else 0.0
     if bin_deg == 0:
-        return read_samples(samples, merge_duplicates=merge_duplicates)
-    table, report = read_binned(
-        samples, BinOptions(width_deg=bin_deg), merge_duplicates=merge_duplicates
-    )
-    out.print(report.line(), markup=False)
+        table = read_samples(samples, merge_duplicates=merge_duplicates)
+    else:
+        table, report = read_binned(
+            samples, BinOptions(width_deg=bin_deg), merge_duplicates=merge_duplicates
+        )
+        out.print(report.line(), markup=False)
+    if not np.any((np.asarray(table.flags, np.int64) & EXCLUDING) == 0):
+        why = "every row is flagged MASKED or BELOW_HORIZON — check the table's flags column"
+        raise UserError(f"{samples}: no usable samples to fit: {why}")
     return table
 
 
