@@ -82,7 +82,7 @@ def test_a_killed_writers_temp_file_is_removed_by_the_next_write(tmp_path: Path,
     live = tmp_path / f".samples.parquet.tmp-{os.getppid()}"
     live.write_bytes(b"another writer's")
     with caplog.at_level(logging.WARNING, logger="gonio"):
-        atomic_write_bytes(tmp_path / "samples.parquet", b"whole")
+        atomic_write_bytes(tmp_path / "samples.parquet", b"whole", overwrite=True)
     assert not stale.exists() and live.exists()
     assert (tmp_path / "samples.parquet").read_bytes() == b"whole"
     assert any(str(stale) in r.getMessage() for r in caplog.records), caplog.text
