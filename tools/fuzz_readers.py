@@ -114,6 +114,13 @@ def _fit_seed() -> bytes:
     return text.replace('"schema_version": 99', '"schema_version": 1').encode()
 
 
+def _merl_seed() -> bytes:
+    """A MERL .binary of a Lambertian BRDF (33 MB: MERL's fixed grid), built here."""
+    from brdfdata.formats import merl
+
+    return merl.merl_bytes(merl.tabulate(lambda wi, wo: [[0.5 / 3.14159] * 3] * len(wi)))
+
+
 def readers() -> dict[str, tuple[Callable[[], bytes], str, Callable[[Path], None], Path | None]]:
     """name → (the valid file's bytes, its name, the reader, a run directory it lives in)."""
     run = CORPUS / "run_dirs" / "bin_px_huge"  # a good one-capture run
@@ -128,6 +135,8 @@ def readers() -> dict[str, tuple[Callable[[], bytes], str, Callable[[Path], None
         "fit": (_fit_seed, "fit-lambert.json", _fit, None),
         "csv": (_csv_seed, "x.csv", _import("csv", angles="deg", sigma="rel=0.02"), None),
         "rgl": (lambda: rgl.read_bytes(), "x.bsdf", _import("rgl", grid="measured"), None),
+        "merl": (_merl_seed, "x.binary", _import("merl", grid="theta_i=10:70:30,theta_o=0:80:20,"
+                                                   "phi_o=0:180:45"), None),
         "run.toml": (lambda: (run / "run.toml").read_bytes(), "run.toml", _run, run),
         "manifest": (lambda: (run / "manifest.sqlite").read_bytes(), "manifest.sqlite", _run, run),
     }  # fmt: skip

@@ -15,6 +15,7 @@ from tools.fuzz_readers import fuzz, readers
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")  # numpy on mutated values
 @pytest.mark.parametrize("name", sorted(readers()))
 def test_no_mutant_reaches_an_internal_error_or_a_hang(name: str) -> None:
-    counts, examples = fuzz(name, 150)
+    # a MERL mutant is MERL's whole 33 MB grid: 20 of them (~5 s), not 150
+    counts, examples = fuzz(name, 20 if name == "merl" else 150)
     assert counts["internal error"] == 0 and counts["hang"] == 0, examples
     assert counts["one line"] > 0  # the mutants are bad enough to be refused
