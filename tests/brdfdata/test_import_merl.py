@@ -115,6 +115,17 @@ def test_invalid_bins_are_dropped_and_counted(tmp_path) -> None:
     assert np.all(table.f > 0) and table.metadata["gonio.source.format"] == "merl"
 
 
+def test_a_merl_file_of_absurd_values_is_refused_in_one_line(tmp_path) -> None:
+    """Issue 47: a MERL file whose values are 1e300 became 3.3 M rows of a table any fit would
+    overflow on. Guard 7 (|f| ≤ 10⁸ sr⁻¹, brdfdata.samples.guards) refuses it, naming the file."""
+    from brdfdata.samples.guards import GuardError
+
+    write_merl(tmp_path / "absurd.binary", MerlTable(raw=np.full((3, *DIMS), 1e300)))
+    with pytest.raises(GuardError, match=r"column f: .* beyond ±1e\+08 sr\^-1") as exc:
+        import_samples("merl", tmp_path / "absurd.binary", ImportOptions())
+    assert "absurd.binary" in str(exc.value) and "\n" not in str(exc.value)
+
+
 def test_not_a_merl_file(tmp_path) -> None:
     p = tmp_path / "x.binary"
     p.write_bytes(np.array([90, 90, 90], "<i4").tobytes() + b"\0" * 64)
